@@ -1,0 +1,999 @@
+"""RAMa with Dreamer on DeepMind Control from pixels: one file, read top to bottom.
+
+Paper: Zholus & Panov, "Multitask Adaptation by Retrospective Exploration with Learned World Models"
+(RAMa: Retrospective Addressing for Multitask Adaptation). This file holds the Dreamer (v1) agent that RAMa
+builds on: an RSSM world model learned from pixels, an actor and a value trained in latent imagination.
+
+Contents (each section sits under a `# ----` banner):
+    1. imports              2. Args (every knob a flag)       3. environment (DeepMind Control)
+    4. episode storage and replay                             5. networks (encoder, decoder, RSSM, heads)
+    6. losses and imagination (λ-returns, KL with free nats)  7. logging, checkpoints, benchmark
+    8. the training loop (`if __name__ == "__main__":`)
+
+Run:
+    python rama_dreamer.py --env-id dmc/walker-walk                       # paper defaults (a GPU job)
+    python rama_dreamer.py --env-id dmc/cartpole-balance --obs-type state # cheap CPU study
+    python rama_dreamer.py --env-id dmc/walker-walk --total-steps 400 --time-limit 100 --batch-size 4 \
+        --seq-len 8 --updates-per-episode 2 --cnn-depth 4 --deter-size 16 --stoch-size 4 --hidden-size 16 \
+        --mlp-units 16 --horizon 3                                         # tiny smoke run (seconds)
+    python rama_dreamer.py --benchmark                                    # seconds per update, paper + small size
+    python rama_dreamer.py --resume runs/<run>                            # continue a killed run
+"""
+
+# ----------------------------------------------------------------------------------------------------------
+# 1. Imports
+# ----------------------------------------------------------------------------------------------------------
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering; must be set before mujoco is imported
+
+import dataclasses
+import glob
+import json
+import platform
+import random
+import sys
+import time
+from dataclasses import dataclass
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import tyro
+from torch import distributions as td
+
+td.Distribution.set_default_validate_args(False)  # argument checks cost Python time in the hot loops
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 2. Args
+# ----------------------------------------------------------------------------------------------------------
+@dataclass
+class Args:
+    # Experiment
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment (part of the run folder's name)"""
+    env_id: str = "dmc/walker-walk"
+    """the environment: `dmc/<domain>-<task>` (any DeepMind Control suite task)"""
+    method: Literal["dreamer"] = "dreamer"
+    """the agent: `dreamer` (no prior data)"""
+    seed: int = 1
+    """seed of python, numpy, torch, the environment and every sampler"""
+    device: str = "auto"
+    """`auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ..."""
+    total_steps: int = 2_000_000
+    """environment steps to train for (counting repeated actions, as the paper does)"""
+    obs_type: Literal["pixels", "state"] = "pixels"
+    """`pixels` (64x64 RGB, the paper) or `state` (the suite's proprioceptive vector, MLP encoder; cheap)"""
+    run_dir: str = "runs"
+    """the folder that holds run folders"""
+    resume: Optional[str] = None
+    """a run folder to continue (its saved args are used; the step count comes from its episodes)"""
+    track: bool = False
+    """log to Weights & Biases as well (needs `pip install wandb`)"""
+    wandb_project: str = "rama"
+    """the W&B project"""
+    eval_every: int = 10_000
+    """run evaluation episodes (no exploration noise) every this many environment steps"""
+    eval_episodes: int = 1
+    """evaluation episodes per evaluation"""
+    capture_video: bool = False
+    """save GIFs of evaluation episodes and of open-loop world-model predictions under `videos/`"""
+    benchmark: bool = False
+    """print seconds per update at the paper's size and a small size (CPU, and CUDA when present), then exit"""
+    benchmark_updates: int = 3
+    """timed updates per benchmark setting (after one warm-up update)"""
+
+    # Environment
+    action_repeat: int = 2
+    """each action is repeated this many environment steps"""
+    time_limit: int = 1000
+    """environment steps per episode"""
+    image_size: int = 64
+    """rendered image height and width"""
+    camera: int = -1
+    """camera id; -1 = the suite default used by Dreamer (0, or 2 for quadruped)"""
+
+    # World model
+    deter_size: int = 200
+    """RSSM deterministic (GRU) state size"""
+    stoch_size: int = 30
+    """RSSM stochastic (Gaussian) state size"""
+    hidden_size: int = 200
+    """RSSM hidden layer size"""
+    cnn_depth: int = 32
+    """channel multiplier of the conv encoder and decoder"""
+    mlp_units: int = 400
+    """units of the reward, value and actor MLPs (and of the state encoder/decoder)"""
+    free_nats: float = 3.0
+    """KL below this many nats is not penalised"""
+    kl_scale: float = 1.0
+    """weight of the KL term"""
+    model_lr: float = 6e-4
+    """Adam learning rate of the world model"""
+    grad_clip: float = 100.0
+    """gradient norm clipping of every optimiser"""
+
+    # Actor-critic
+    actor_lr: float = 8e-5
+    """Adam learning rate of the actor"""
+    value_lr: float = 8e-5
+    """Adam learning rate of the value"""
+    horizon: int = 15
+    """imagination horizon"""
+    gamma: float = 0.99
+    """discount"""
+    return_lambda: float = 0.95
+    """λ of the λ-returns"""
+    expl_noise: float = 0.3
+    """std of the Gaussian noise added to actions while collecting"""
+    actor_init_std: float = 5.0
+    """the actor's std before training (tanh-normal)"""
+    actor_min_std: float = 1e-4
+    """the actor's minimal std"""
+    actor_mean_scale: float = 5.0
+    """the actor's pre-tanh mean is squashed to [-scale, scale]"""
+
+    # Replay
+    batch_size: int = 50
+    """n: chunks per batch"""
+    seq_len: int = 50
+    """L: steps per chunk"""
+    updates_per_episode: int = 100
+    """C: updates between two collected episodes"""
+    prefill_episodes: int = 1
+    """S: random-action episodes collected before training (the paper: 1)"""
+
+
+def check_args(args: Args) -> None:
+    """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
+    positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
+                "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
+                "prefill_episodes", "benchmark_updates"]
+    for name in positive:
+        if getattr(args, name) <= 0:
+            raise UsageError(f"--{name.replace('_', '-')} must be > 0 (got {getattr(args, name)})")
+    for name in ["eval_episodes"]:
+        if getattr(args, name) < 0:
+            raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
+    if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
+        raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
+    if args.seq_len < 2:
+        raise UsageError(f"--seq-len must be >= 2 (got {args.seq_len})")
+    if args.time_limit // args.action_repeat < args.seq_len:
+        raise UsageError(f"--seq-len {args.seq_len} is longer than an episode "
+                         f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
+    make_env_spec(args.env_id)  # raises a UsageError naming --env-id
+
+
+class UsageError(Exception):
+    """Bad input from the command line or from files: printed as one line, exit code 2."""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 3. Environment: DeepMind Control from pixels
+# ----------------------------------------------------------------------------------------------------------
+def make_env_spec(env_id: str) -> dict:
+    """Parse `dmc/<domain>-<task>` into its parts; refuse unknown ids."""
+    from dm_control import suite
+
+    suite_name, _, name = env_id.partition("/")
+    domain, _, task = name.partition("-")
+    if suite_name != "dmc" or (domain, task) not in suite.ALL_TASKS:
+        known = ", ".join(f"dmc/{d}-{t}" for d, t in suite.ALL_TASKS[:4])
+        raise UsageError(f"--env-id {env_id!r} is not a known environment (e.g. {known}, ...)")
+    return {"suite": suite_name, "domain": domain, "task": task, "name": name}
+
+
+class DMCEnv:
+    """A DeepMind Control task with action repeat, a time limit and 64x64 RGB (or state) observations.
+
+    Rendering goes through one `mujoco.Renderer` per env: dm_control's own `physics.render` can return black
+    frames once another renderer exists in the process. Observations: uint8 (H, W, 3) or float32 (D,).
+    """
+
+    def __init__(self, env_id, seed, obs_type="pixels", image_size=64, action_repeat=2, time_limit=1000, camera=-1):
+        import mujoco
+        from dm_control import suite
+
+        spec = make_env_spec(env_id)
+        self.task_name = spec["name"]
+        self._env = suite.load(spec["domain"], spec["task"], task_kwargs={"random": seed})
+        self._obs_type, self._repeat = obs_type, action_repeat
+        self._max_agent_steps = time_limit // action_repeat
+        self._camera = camera if camera >= 0 else (2 if spec["domain"] == "quadruped" else 0)
+        action_spec = self._env.action_spec()
+        self.action_size = int(action_spec.shape[0])
+        self._renderer = mujoco.Renderer(self._env.physics.model.ptr, image_size, image_size)
+        if obs_type == "pixels":
+            self.obs_shape = (image_size, image_size, 3)
+        else:
+            self.obs_shape = (sum(int(np.prod(v.shape)) for v in self._env.observation_spec().values()),)
+
+    def _observe(self, time_step):
+        if self._obs_type == "pixels":
+            return self.render()
+        return np.concatenate([np.asarray(v, np.float32).ravel() for v in time_step.observation.values()])
+
+    def render(self):
+        physics = self._env.physics
+        self._renderer.update_scene(physics.data.ptr, camera=self._camera)
+        return self._renderer.render().copy()  # (H, W, 3) uint8
+
+    def reset(self, seed=None):
+        if seed is not None:  # reseed the task's own generator: episode k of a run is reproducible by itself
+            self._env.task.random.seed(seed)
+        self._steps = 0
+        return self._observe(self._env.reset())
+
+    def step(self, action):
+        """Returns (obs, reward, terminated, truncated); DMC tasks never terminate, they time out."""
+        reward = 0.0
+        for _ in range(self._repeat):
+            time_step = self._env.step(action)
+            reward += time_step.reward or 0.0
+            if time_step.last():
+                break
+        self._steps += 1
+        truncated = time_step.last() or self._steps >= self._max_agent_steps
+        return self._observe(time_step), reward, False, truncated
+
+    def close(self):
+        self._renderer.close()
+        self._env.physics.free()  # dm_control's env.close() frees nothing
+
+
+def make_env(args: Args, seed: int):
+    return DMCEnv(args.env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit, args.camera)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 4. Episode storage and replay
+# ----------------------------------------------------------------------------------------------------------
+# An episode is a dict of arrays over T+1 steps: obs[t] is seen after action[t] (action[0] = 0) and brings
+# reward[t] (reward[0] = 0); terminal[t] marks a true end (not a time limit). One `.npz` file per episode,
+# named `{index:06d}-{agent_steps}.npz`, so the step count of a run is recoverable from the file names alone.
+def episode_filename(index: int, episode: dict) -> str:
+    return f"{index:06d}-{len(episode['reward']) - 1}.npz"
+
+
+def save_episode(directory: str, index: int, episode: dict) -> str:
+    """Write atomically: a temp file in the same folder, then a rename, so a kill never leaves half a file."""
+    path = os.path.join(directory, episode_filename(index, episode))
+    tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, **episode)
+    os.replace(tmp, path)
+    return path
+
+
+def load_episode(path: str) -> dict:
+    try:
+        with np.load(path) as data:
+            episode = {k: data[k] for k in data.files}
+    except Exception as e:  # a truncated or foreign file: name it, don't crash deep inside
+        raise UsageError(f"{path}: not a readable episode file ({type(e).__name__}: {e})") from None
+    missing = {"obs", "action", "reward", "terminal", "task"} - set(episode)
+    if missing:
+        raise UsageError(f"{path}: not an episode file (missing {sorted(missing)})")
+    episode["task"] = str(episode["task"])
+    return episode
+
+
+def list_episode_files(directory: str) -> list:
+    return sorted(glob.glob(os.path.join(directory, "[0-9]*.npz")))
+
+
+class Replay:
+    """Episodes in memory (images as uint8) and uniform sampling of fixed-length chunks.
+
+    A chunk is addressed by (episode id, start); `gather` copies only the chunks, never whole episodes.
+    """
+
+    def __init__(self):
+        self.episodes, self.tasks = [], []
+        self._lengths = np.zeros(0, np.int64)  # (E,) steps per episode (T+1)
+
+    def add(self, episode: dict):
+        self.episodes.append(episode)
+        self.tasks.append(episode["task"])
+        self._lengths = np.append(self._lengths, len(episode["reward"]))
+
+    def __len__(self):
+        return len(self.episodes)
+
+    def num_chunks(self, seq_len: int) -> int:
+        return int(np.maximum(self._lengths - seq_len + 1, 0).sum())
+
+    def sample_ids(self, n: int, seq_len: int, rng: np.random.Generator):
+        """n (episode, start) pairs, uniform over all chunks of length seq_len."""
+        starts_per_episode = np.maximum(self._lengths - seq_len + 1, 0)  # (E,)
+        total = starts_per_episode.sum()
+        if total == 0:
+            raise ValueError(f"no episode has {seq_len} steps")
+        episode_ids = rng.choice(len(self.episodes), size=n, p=starts_per_episode / total)  # (n,)
+        starts = rng.integers(0, starts_per_episode[episode_ids])  # (n,)
+        return episode_ids, starts
+
+    def gather(self, episode_ids, starts, seq_len: int) -> dict:
+        keys = ("obs", "action", "reward", "terminal")
+        return {k: np.stack([self.episodes[e][k][s:s + seq_len] for e, s in zip(episode_ids, starts)]) for k in keys}
+
+    def sample(self, n: int, seq_len: int, rng: np.random.Generator) -> dict:
+        return self.gather(*self.sample_ids(n, seq_len, rng), seq_len)
+
+
+def preprocess_obs(obs, device):
+    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]."""
+    obs = torch.as_tensor(obs, device=device)  # uint8 crosses to the device: 4x less to copy
+    if obs.dtype == torch.uint8:
+        return obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5)
+    return obs.float()
+
+
+def to_torch(batch: dict, device) -> dict:
+    """numpy chunks (B, T, ...) -> float torch tensors on device (terminal stays bool)."""
+    out = {k: torch.as_tensor(v, device=device) for k, v in batch.items() if k != "obs"}
+    out["obs"] = preprocess_obs(batch["obs"], device)
+    out["action"], out["reward"] = out["action"].float(), out["reward"].float()
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 5. Networks
+# ----------------------------------------------------------------------------------------------------------
+def mlp(in_size: int, units: int, layers: int, out_size: int) -> nn.Sequential:
+    modules = []
+    for _ in range(layers):
+        modules += [nn.Linear(in_size, units), nn.ELU()]
+        in_size = units
+    return nn.Sequential(*modules, nn.Linear(in_size, out_size))
+
+
+def conv_sizes(size: int, layers: int = 4) -> list:
+    """Spatial sizes through `layers` convs with kernel 4, stride 2, no padding: 64 -> 31 -> 14 -> 6 -> 2."""
+    sizes = [size]
+    for _ in range(layers):
+        sizes.append((sizes[-1] - 4) // 2 + 1)
+    return sizes
+
+
+class ConvEncoder(nn.Module):
+    """Four convs (kernel 4, stride 2, depths 1,2,4,8 x depth): (N, 3, H, W) -> (N, embed_size)."""
+
+    def __init__(self, obs_shape, depth: int):
+        super().__init__()
+        height, width, channels = obs_shape
+        layers, in_ch = [], channels
+        for i in range(4):
+            layers += [nn.Conv2d(in_ch, depth * 2**i, 4, 2), nn.ReLU()]
+            in_ch = depth * 2**i
+        self.net = nn.Sequential(*layers, nn.Flatten())
+        self.embed_size = in_ch * conv_sizes(height)[-1] * conv_sizes(width)[-1]
+
+    def forward(self, obs):  # (B, T, 3, H, W) -> (B, T, E)
+        return self.net(obs.flatten(0, 1)).unflatten(0, obs.shape[:2])
+
+
+class ConvDecoder(nn.Module):
+    """Mirror of the encoder: features -> mean image (B, T, 3, H, W); output paddings land on H, W exactly."""
+
+    def __init__(self, feat_size: int, obs_shape, depth: int):
+        super().__init__()
+        height, width, channels = obs_shape
+        hs, ws = conv_sizes(height), conv_sizes(width)
+        self._start = (depth * 8, hs[-1], ws[-1])
+        self.linear = nn.Linear(feat_size, int(np.prod(self._start)))
+        layers, in_ch = [], depth * 8
+        for i in range(4):  # sizes go hs[4] -> hs[3] -> ... -> hs[0]
+            out_ch = channels if i == 3 else depth * 2 ** (2 - i)
+            pad = (hs[3 - i] - ((hs[4 - i] - 1) * 2 + 4), ws[3 - i] - ((ws[4 - i] - 1) * 2 + 4))
+            layers += [nn.ConvTranspose2d(in_ch, out_ch, 4, 2, output_padding=pad)] + ([nn.ReLU()] if i < 3 else [])
+            in_ch = out_ch
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, feat):  # (B, T, F) -> (B, T, 3, H, W)
+        x = self.linear(feat.flatten(0, 1)).view(-1, *self._start)
+        return self.net(x).unflatten(0, feat.shape[:2])
+
+
+class MLPEncoder(nn.Module):
+    """State observations: (B, T, D) -> (B, T, units)."""
+
+    def __init__(self, obs_size: int, units: int):
+        super().__init__()
+        self.net, self.embed_size = nn.Sequential(mlp(obs_size, units, 2, units), nn.ELU()), units
+
+    def forward(self, obs):
+        return self.net(obs)
+
+
+class MLPDecoder(nn.Module):
+    def __init__(self, feat_size: int, obs_size: int, units: int):
+        super().__init__()
+        self.net = mlp(feat_size, units, 2, obs_size)
+
+    def forward(self, feat):
+        return self.net(feat)
+
+
+class RSSM(nn.Module):
+    """Recurrent state-space model: deterministic GRU state h and Gaussian stochastic state z.
+
+    prior p(z_t | h_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t);  posterior q(z_t | h_t, e_t) with e_t the obs embedding.
+    A state is a dict of tensors: mean, std, stoch (B, S) and deter (B, D).
+    """
+
+    def __init__(self, action_size, embed_size, stoch_size=30, deter_size=200, hidden_size=200):
+        super().__init__()
+        self.stoch_size, self.deter_size = stoch_size, deter_size
+        self.img_in = nn.Linear(stoch_size + action_size, hidden_size)
+        self.gru = nn.GRUCell(hidden_size, deter_size)
+        self.img_out = nn.Sequential(nn.Linear(deter_size, hidden_size), nn.ELU(), nn.Linear(hidden_size, 2 * stoch_size))
+        # the posterior's first layer reads [h, e]; split in two so the embedding half runs once for all t
+        self.obs_deter = nn.Linear(deter_size, hidden_size)
+        self.obs_embed = nn.Linear(embed_size, hidden_size, bias=False)
+        self.obs_out = nn.Linear(hidden_size, 2 * stoch_size)
+
+    @property
+    def feat_size(self):
+        return self.stoch_size + self.deter_size
+
+    def initial(self, batch: int, device) -> dict:
+        zeros = lambda n: torch.zeros(batch, n, device=device)  # noqa: E731
+        return {"mean": zeros(self.stoch_size), "std": zeros(self.stoch_size),
+                "stoch": zeros(self.stoch_size), "deter": zeros(self.deter_size)}
+
+    @staticmethod
+    def feat(state: dict):
+        return torch.cat([state["stoch"], state["deter"]], -1)
+
+    def _dist_params(self, x):
+        mean, std = x.chunk(2, -1)
+        std = F.softplus(std) + 0.1
+        return mean, std, mean + std * torch.randn_like(std)
+
+    def img_step(self, state: dict, action) -> dict:
+        x = F.elu(self.img_in(torch.cat([state["stoch"], action], -1)))
+        deter = self.gru(x, state["deter"])
+        mean, std, stoch = self._dist_params(self.img_out(deter))
+        return {"mean": mean, "std": std, "stoch": stoch, "deter": deter}
+
+    def obs_step(self, prior: dict, embed_proj) -> dict:
+        """Posterior from the prior's h and the projected embedding (obs_embed(e_t), precomputed)."""
+        x = F.elu(self.obs_deter(prior["deter"]) + embed_proj)
+        mean, std, stoch = self._dist_params(self.obs_out(x))
+        return {"mean": mean, "std": std, "stoch": stoch, "deter": prior["deter"]}
+
+    def observe(self, embed, action, state: Optional[dict] = None):
+        """Filter a chunk: embed (B, T, E), action (B, T, A) -> posteriors and priors, dicts of (B, T, ...)."""
+        if state is None:
+            state = self.initial(embed.shape[0], embed.device)
+        embed_proj = self.obs_embed(embed)  # (B, T, hidden), one matmul for the whole chunk
+        posts, priors = [], []
+        for t in range(embed.shape[1]):
+            prior = self.img_step(state, action[:, t])
+            state = self.obs_step(prior, embed_proj[:, t])
+            posts.append(state)
+            priors.append(prior)
+        stack = lambda states: {k: torch.stack([s[k] for s in states], 1) for k in states[0]}  # noqa: E731
+        return stack(posts), stack(priors)
+
+    def imagine_actions(self, state: dict, actions):
+        """Open-loop rollout with given actions (B, T, A) -> prior states (B, T, ...)."""
+        priors = []
+        for t in range(actions.shape[1]):
+            state = self.img_step(state, actions[:, t])
+            priors.append(state)
+        return {k: torch.stack([s[k] for s in priors], 1) for k in priors[0]}
+
+
+class WorldModel(nn.Module):
+    def __init__(self, obs_shape, action_size, args: Args):
+        super().__init__()
+        if len(obs_shape) == 3:
+            self.encoder = ConvEncoder(obs_shape, args.cnn_depth)
+        else:
+            self.encoder = MLPEncoder(obs_shape[0], args.mlp_units)
+        self.rssm = RSSM(action_size, self.encoder.embed_size, args.stoch_size, args.deter_size, args.hidden_size)
+        feat = self.rssm.feat_size
+        if len(obs_shape) == 3:
+            self.decoder = ConvDecoder(feat, obs_shape, args.cnn_depth)
+        else:
+            self.decoder = MLPDecoder(feat, obs_shape[0], args.mlp_units)
+        self.reward = mlp(feat, args.mlp_units, 2, 1)
+
+
+class Actor(nn.Module):
+    """Tanh-normal policy over features: (..., F) -> a distribution over actions in [-1, 1]^A."""
+
+    def __init__(self, feat_size, action_size, units, init_std=5.0, min_std=1e-4, mean_scale=5.0):
+        super().__init__()
+        self.net = mlp(feat_size, units, 4, 2 * action_size)
+        self.init_std, self.min_std, self.mean_scale = init_std, min_std, mean_scale
+
+    def forward(self, feat):
+        return tanh_normal(self.net(feat), self.init_std, self.min_std, self.mean_scale)
+
+    def mode(self, feat):
+        """tanh of the Gaussian mean: the action used in evaluation."""
+        mean = self.net(feat).chunk(2, -1)[0]
+        return torch.tanh(self.mean_scale * torch.tanh(mean / self.mean_scale))
+
+
+def tanh_normal(out, init_std, min_std, mean_scale):
+    """Dreamer's squashed Gaussian: mean in [-scale, scale], std = softplus(x + softplus^-1(init)) + min."""
+    mean, std = out.chunk(2, -1)
+    mean = mean_scale * torch.tanh(mean / mean_scale)
+    std = F.softplus(std + np.log(np.expm1(init_std))) + min_std
+    dist = td.TransformedDistribution(td.Normal(mean, std), [td.TanhTransform(cache_size=1)])
+    return td.Independent(dist, 1)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 6. Losses and imagination
+# ----------------------------------------------------------------------------------------------------------
+def kl_with_free_nats(post: dict, prior: dict, free_nats: float):
+    """KL(post || prior) summed over the state, averaged over (B, T), then clipped below at free_nats (v1)."""
+    kl = td.kl_divergence(td.Normal(post["mean"], post["std"]), td.Normal(prior["mean"], prior["std"])).sum(-1)
+    return torch.clamp(kl.mean(), min=free_nats), kl.mean()
+
+
+def gaussian_loglik(mean, target, event_dims: int):
+    """log N(target; mean, 1) summed over the last event_dims dims: (B, T, ...) -> (B, T)."""
+    loglik = -0.5 * (target - mean) ** 2 - 0.5 * np.log(2 * np.pi)
+    return loglik.flatten(2).sum(-1) if event_dims else loglik
+
+
+def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: float, reward_mask=None):
+    """ELBO of a batch of chunks: (KL with free nats) - log p(o|s) - log p(r|s). Returns loss, posts, metrics.
+
+    reward_mask (B, T) drops the reward term on chunks whose reward belongs to another task.
+    """
+    embed = wm.encoder(batch["obs"])  # (B, T, E)
+    post, prior = wm.rssm.observe(embed, batch["action"])
+    feat = wm.rssm.feat(post)  # (B, T, F)
+    obs_dims = 3 if batch["obs"].dim() == 5 else 1
+    obs_loglik = gaussian_loglik(wm.decoder(feat), batch["obs"], obs_dims).mean()
+    reward_loglik = gaussian_loglik(wm.reward(feat).squeeze(-1), batch["reward"], 0)  # (B, T)
+    if reward_mask is None:
+        reward_loglik = reward_loglik.mean()
+    else:
+        reward_loglik = (reward_loglik * reward_mask).sum() / reward_mask.sum().clamp(min=1.0)
+    kl_loss, kl_value = kl_with_free_nats(post, prior, free_nats)
+    loss = kl_scale * kl_loss - obs_loglik - reward_loglik
+    metrics = {"losses/world_model": loss, "losses/kl": kl_value, "losses/obs_loglik": obs_loglik,
+               "losses/reward_loglik": reward_loglik}
+    return loss, post, metrics
+
+
+def lambda_return(reward, value, pcont, bootstrap, lam: float):
+    """λ-returns over time (dim 0): R_t = r_t + γ_t [(1-λ) v_{t+1} + λ R_{t+1}], R_T = bootstrap.
+
+    reward, value, pcont: (H, N); bootstrap: (N,). Returns (H, N).
+    """
+    next_values = torch.cat([value[1:], bootstrap[None]], 0)
+    inputs = reward + pcont * next_values * (1 - lam)
+    returns, last = [], bootstrap
+    for t in reversed(range(reward.shape[0])):
+        last = inputs[t] + pcont[t] * lam * last
+        returns.append(last)
+    return torch.stack(returns[::-1], 0)
+
+
+def imagine(wm: WorldModel, actor: Actor, start: dict, horizon: int):
+    """Roll the prior forward from start states (N, ...) with actions from the actor: features (H, N, F)."""
+    state, feats = start, []
+    for _ in range(horizon):
+        action = actor(wm.rssm.feat(state).detach()).rsample()
+        state = wm.rssm.img_step(state, action)
+        feats.append(wm.rssm.feat(state))
+    return torch.stack(feats, 0)
+
+
+def imagined_returns(wm: WorldModel, value_net: nn.Module, feats, gamma: float, lam: float):
+    """Rewards and values along imagined features (H, N, F) -> λ-returns (H-1, N) and their weights."""
+    reward = wm.reward(feats).squeeze(-1)  # (H, N)
+    value = value_net(feats).squeeze(-1)  # (H, N)
+    pcont = torch.full_like(reward, gamma)
+    returns = lambda_return(reward[:-1], value[:-1], pcont[:-1], value[-1], lam)  # (H-1, N)
+    # weight of step t = γ^t: later imagined steps matter less
+    weights = torch.cumprod(torch.cat([torch.ones_like(pcont[:1]), pcont[:-2]], 0), 0).detach()  # (H-1, N)
+    return returns, weights
+
+
+def flatten_states(states: dict) -> dict:
+    """(B, T, ...) states -> (B*T, ...) detached start states for imagination."""
+    return {k: v.detach().flatten(0, 1) for k, v in states.items()}
+
+
+class Freeze:
+    """Turn off gradients of some modules inside a block: actor and value losses must not train the model."""
+
+    def __init__(self, *modules):
+        self._params = [p for m in modules for p in m.parameters()]
+
+    def __enter__(self):
+        for p in self._params:
+            p.requires_grad_(False)
+
+    def __exit__(self, *exc):
+        for p in self._params:
+            p.requires_grad_(True)
+
+
+def optimizer_step(optimizer, loss, params, clip: float):
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    norm = nn.utils.clip_grad_norm_(params, clip)
+    optimizer.step()
+    return norm
+
+
+class Agent(nn.Module):
+    """The Dreamer agent: world model, actor, value and their optimisers."""
+
+    def __init__(self, obs_shape, action_size, args: Args):
+        super().__init__()
+        self.wm = WorldModel(obs_shape, action_size, args)
+        feat = self.wm.rssm.feat_size
+        self.actor = Actor(feat, action_size, args.mlp_units, args.actor_init_std, args.actor_min_std,
+                           args.actor_mean_scale)
+        self.value = mlp(feat, args.mlp_units, 3, 1)
+        self.model_opt = torch.optim.Adam(self.wm.parameters(), lr=args.model_lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr)
+        self.value_opt = torch.optim.Adam(self.value.parameters(), lr=args.value_lr)
+
+    def optimizers(self):
+        return {"model": self.model_opt, "actor": self.actor_opt, "value": self.value_opt}
+
+
+def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None) -> dict:
+    """One Dreamer update: world model on the batch, then actor and value in imagination from its posteriors."""
+    timings = {}
+    t0 = time.perf_counter()
+    wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask)
+    metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(), args.grad_clip)
+    timings["world_model"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    with Freeze(agent.wm, agent.value):  # actor gradients flow through the model and value, but train neither
+        feats = imagine(agent.wm, agent.actor, flatten_states(post), args.horizon)  # (H, B*T, F)
+        returns, weights = imagined_returns(agent.wm, agent.value, feats, args.gamma, args.return_lambda)
+        actor_loss = -(weights * returns).mean()
+    metrics["losses/actor"] = actor_loss
+    metrics["losses/actor_grad_norm"] = optimizer_step(agent.actor_opt, actor_loss, agent.actor.parameters(),
+                                                       args.grad_clip)
+    value_pred = agent.value(feats[:-1].detach()).squeeze(-1)  # (H-1, B*T)
+    value_loss = -(weights * gaussian_loglik(value_pred, returns.detach(), 0)).mean()
+    metrics["losses/value"] = value_loss
+    metrics["losses/value_grad_norm"] = optimizer_step(agent.value_opt, value_loss, agent.value.parameters(),
+                                                       args.grad_clip)
+    metrics["charts/imagined_return"] = returns.mean()
+    timings["actor_critic"] = time.perf_counter() - t0
+    return {"metrics": metrics, "timings": timings}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 7. Acting, logging, checkpoints, benchmark
+# ----------------------------------------------------------------------------------------------------------
+class Policy:
+    """Acts online: keeps the RSSM posterior of the current episode and picks actions from it."""
+
+    def __init__(self, agent: Agent, device):
+        self.agent, self.device = agent, device
+
+    def reset(self):
+        self.state, self.action = None, torch.zeros(1, self.agent.actor.net[-1].out_features // 2, device=self.device)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, explore_noise: Optional[float], rng: np.random.Generator) -> np.ndarray:
+        """explore_noise None = evaluation (the mode); else a sample plus Gaussian noise of that std."""
+        wm = self.agent.wm
+        embed = wm.encoder(preprocess_obs(obs[None, None], self.device))[:, 0]  # (1, E)
+        state = self.state if self.state is not None else wm.rssm.initial(1, self.device)
+        self.state = wm.rssm.obs_step(wm.rssm.img_step(state, self.action), wm.rssm.obs_embed(embed))
+        feat = wm.rssm.feat(self.state)
+        if explore_noise is None:
+            action = self.agent.actor.mode(feat)
+        else:
+            action = self.agent.actor(feat).sample()
+        action = action[0].cpu().numpy()
+        if explore_noise:
+            action = np.clip(action + rng.normal(0.0, explore_noise, action.shape), -1.0, 1.0)
+        self.action = torch.as_tensor(action, dtype=torch.float32, device=self.device)[None]
+        return action.astype(np.float32)
+
+
+def run_episode(env, act, seed: int, task: str, record: bool = False):
+    """Play one episode; act(obs) -> action (None for random actions). Returns the episode dict and frames."""
+    obs = env.reset(seed=seed)
+    episode = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
+    frames = [env.render()] if record else []
+    done = False
+    while not done:
+        action = act(obs)
+        obs, reward, terminated, truncated = env.step(action)
+        for key, value in zip(("obs", "action", "reward", "terminal"), (obs, action, reward, terminated)):
+            episode[key].append(value)
+        if record:
+            frames.append(env.render())
+        done = terminated or truncated
+    episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None) for k, v in episode.items()}
+    episode["task"] = np.asarray(task)
+    episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
+    return episode, frames
+
+
+class Logger:
+    """TensorBoard + metrics.jsonl (+ W&B): one JSON line per log call, keys grouped charts/, losses/, eval/."""
+
+    def __init__(self, run_path: str, args: Args):
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(run_path)
+        self.jsonl = open(os.path.join(run_path, "metrics.jsonl"), "a")
+        self.wandb = None
+        if args.track:
+            try:
+                import wandb
+            except ImportError:
+                raise UsageError("--track needs wandb: pip install wandb") from None
+            self.wandb = wandb.init(project=args.wandb_project, config=vars(args), name=os.path.basename(run_path),
+                                    dir=run_path, resume="allow")
+
+    def log(self, step: int, metrics: dict):
+        metrics = {k: float(v) for k, v in metrics.items()}
+        for key, value in metrics.items():
+            self.writer.add_scalar(key, value, step)
+        self.jsonl.write(json.dumps({"step": step, **metrics}) + "\n")
+        self.jsonl.flush()
+        if self.wandb:
+            self.wandb.log(metrics, step=step)
+
+    def close(self):
+        self.writer.close()
+        self.jsonl.close()
+        if self.wandb:
+            self.wandb.finish()
+
+
+def save_checkpoint(path: str, agent: Agent, state: dict):
+    """Atomic like the episodes: a temp file, then a rename."""
+    payload = {"agent": agent.state_dict(), "optimizers": {k: o.state_dict() for k, o in agent.optimizers().items()},
+               "state": state, "rng": {"python": random.getstate(), "numpy": np.random.get_state(),
+                                       "torch": torch.get_rng_state()}}
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, agent: Agent) -> dict:
+    payload = torch.load(path, map_location=next(agent.parameters()).device, weights_only=False)
+    agent.load_state_dict(payload["agent"])
+    for name, opt in agent.optimizers().items():
+        opt.load_state_dict(payload["optimizers"][name])
+    random.setstate(payload["rng"]["python"])
+    np.random.set_state(payload["rng"]["numpy"])
+    torch.set_rng_state(payload["rng"]["torch"])
+    return payload["state"]
+
+
+def write_gif(path: str, frames, fps: int = 25):
+    import imageio.v2 as imageio
+
+    imageio.mimsave(path, [np.asarray(f, np.uint8) for f in frames], duration=1000 / fps, loop=0)
+
+
+@torch.no_grad()
+def open_loop_frames(wm: WorldModel, batch: dict, context: int = 5):
+    """Truth | model | error rows for up to 4 chunks: observe `context` frames, then imagine with true actions."""
+    batch = {k: v[:4] for k, v in batch.items()}
+    post, _ = wm.rssm.observe(wm.encoder(batch["obs"][:, :context]), batch["action"][:, :context])
+    start = {k: v[:, -1] for k, v in post.items()}
+    prior = wm.rssm.imagine_actions(start, batch["action"][:, context:])
+    model = torch.cat([wm.decoder(wm.rssm.feat(post)), wm.decoder(wm.rssm.feat(prior))], 1)  # (4, T, 3, H, W)
+    truth = batch["obs"]
+    grid = torch.cat([truth, model, (model - truth + 1) / 2 - 0.5], 3)  # rows stacked along height
+    grid = torch.cat(list(grid), 3)  # chunks side by side along width -> (T, 3, 3H, 4W)
+    return ((grid + 0.5).clamp(0, 1) * 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UsageError(f"--device {name!r} is not a torch device (auto, cpu, cuda, cuda:N)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UsageError(f"--device {name}: CUDA is not available on this machine")
+    return device
+
+
+def seed_everything(seed: int):
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng) -> Replay:
+    """Random episodes for the benchmark: no environment needed."""
+    replay = Replay()
+    for _ in range(episodes):
+        shape = (length + 1, *obs_shape)
+        obs = rng.integers(0, 256, shape, dtype=np.uint8) if len(obs_shape) == 3 else rng.normal(size=shape)
+        replay.add({"obs": obs, "action": rng.uniform(-1, 1, (length + 1, action_size)).astype(np.float32),
+                    "reward": rng.uniform(0, 1, length + 1).astype(np.float32),
+                    "terminal": np.zeros(length + 1, bool), "task": "synthetic"})
+    return replay
+
+
+def benchmark(args: Args):
+    """Seconds per full update (world model + actor + value) at the paper's size and a small size."""
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    print(f"machine: {platform.machine()} {platform.processor() or ''} | {os.cpu_count()} CPUs | torch "
+          f"{torch.__version__} | threads {torch.get_num_threads()}"
+          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""))
+    obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else (24,)
+    rng = np.random.default_rng(args.seed)
+    replay = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng)
+    print(f"{'device':<6} {'size':<6} {'batch':>5} {'len':>4} {'s/update':>9} {'world model':>12} {'actor-critic':>13}")
+    for device_name in devices:
+        device = torch.device(device_name)
+        for size, (n, length) in {"paper": (50, 50), "small": (16, 50)}.items():
+            run_args = dataclasses.replace(args, batch_size=n, seq_len=length)
+            agent = Agent(obs_shape, 6, run_args).to(device)
+            totals = {"world_model": 0.0, "actor_critic": 0.0}
+            for i in range(args.benchmark_updates + 1):
+                batch = to_torch(replay.sample(n, length, rng), device)
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                out = train_step(agent, batch, run_args)
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                if i > 0:  # the first update warms up allocators and kernels
+                    for k in totals:
+                        totals[k] += out["timings"][k] / args.benchmark_updates
+            total = sum(totals.values())
+            print(f"{device_name:<6} {size:<6} {n:>5} {length:>4} {total:>9.3f} {totals['world_model']:>12.3f} "
+                  f"{totals['actor_critic']:>13.3f}", flush=True)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 8. Training loop
+# ----------------------------------------------------------------------------------------------------------
+def setup_run(args: Args):
+    """Create (or reopen, with --resume) the run folder; returns (args, run_path)."""
+    if args.resume:
+        args_path = os.path.join(args.resume, "args.json")
+        if not os.path.isfile(args_path):
+            raise UsageError(f"--resume {args.resume}: no args.json there (not a run folder)")
+        with open(args_path) as f:
+            saved = json.load(f)
+        valid = {f.name for f in dataclasses.fields(Args)}
+        args = dataclasses.replace(Args(**{k: v for k, v in saved.items() if k in valid}), resume=args.resume,
+                                   device=args.device)
+        check_args(args)
+        return args, args.resume
+    env_name = args.env_id.replace("/", "_")
+    run_name = f"{env_name}__{args.exp_name}__{args.method}__{args.seed}__{int(time.time())}"
+    run_path = os.path.join(args.run_dir, run_name)
+    try:
+        os.makedirs(os.path.join(run_path, "episodes"), exist_ok=True)
+        with open(os.path.join(run_path, "args.json"), "w") as f:
+            json.dump(dataclasses.asdict(args), f, indent=2)
+    except OSError as e:
+        raise UsageError(f"--run-dir {args.run_dir!r} is not writable ({e.strerror})") from None
+    return args, run_path
+
+
+def main(args: Args):
+    check_args(args)
+    if args.benchmark:
+        return benchmark(args)
+    device = resolve_device(args.device)
+    args, run_path = setup_run(args)
+    episode_dir = os.path.join(run_path, "episodes")
+    seed_everything(args.seed)
+    rng = np.random.default_rng(args.seed)
+
+    # the current task's replay: episodes already on disk count (a resumed run recovers its step count here)
+    replay = Replay()
+    for path in list_episode_files(episode_dir):
+        replay.add(load_episode(path))
+    env_steps = sum(len(ep["reward"]) - 1 for ep in replay.episodes) * args.action_repeat
+
+    env, eval_env = make_env(args, args.seed), make_env(args, args.seed + 10_000)
+    agent = Agent(env.obs_shape, env.action_size, args).to(device)
+    policy = Policy(agent, device)
+    n_params = sum(p.numel() for p in agent.parameters())
+    state = {"updates": 0, "next_eval": args.eval_every, "trained_episodes": 0}
+    checkpoint_path = os.path.join(run_path, "checkpoint.pt")
+    if os.path.exists(checkpoint_path):
+        state = load_checkpoint(checkpoint_path, agent)
+        rng = np.random.default_rng([args.seed, len(replay)])  # fresh stream: resume is not bit-identical
+    logger = Logger(run_path, args)
+    if args.capture_video:
+        os.makedirs(os.path.join(run_path, "videos"), exist_ok=True)
+    print(f"run: {run_path} | {args.env_id} ({args.obs_type}) | method {args.method} | device {device} | "
+          f"{n_params / 1e6:.2f}M parameters | {len(replay)} episodes on disk ({env_steps} steps)", flush=True)
+
+    from tqdm import tqdm
+
+    progress = tqdm(total=args.total_steps, initial=min(env_steps, args.total_steps), unit="step", dynamic_ncols=True,
+                    disable=None)
+    start_time, start_steps = time.time(), env_steps
+    try:
+        while env_steps < args.total_steps:
+            # (a) C updates on chunks of the replay, once there is something to learn from
+            if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
+                sums, timings = {}, {"world_model": 0.0, "actor_critic": 0.0}
+                for _ in range(args.updates_per_episode):
+                    batch = to_torch(replay.sample(args.batch_size, args.seq_len, rng), device)
+                    out = train_step(agent, batch, args)
+                    for k, v in out["metrics"].items():
+                        sums[k] = sums.get(k, 0.0) + v.detach()
+                    for k, v in out["timings"].items():
+                        timings[k] += v
+                state["updates"] += args.updates_per_episode
+                metrics = {k: v.item() / args.updates_per_episode for k, v in sums.items()}
+                metrics.update({f"time/{k}_per_update": v / args.updates_per_episode for k, v in timings.items()})
+                metrics["charts/updates"] = state["updates"]
+                logger.log(env_steps, metrics)
+                save_checkpoint(checkpoint_path, agent, state)
+                if args.capture_video:
+                    frames = open_loop_frames(agent.wm, batch)
+                    write_gif(os.path.join(run_path, "videos", f"openloop_{env_steps:08d}.gif"), frames)
+
+            # (b) evaluation without exploration noise, every eval_every environment steps
+            if args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes:
+                returns = []
+                for i in range(args.eval_episodes):
+                    policy.reset()
+                    episode, frames = run_episode(eval_env, lambda o: policy.act(o, None, rng),
+                                                  seed=args.seed * 1_000_003 + 7919 * env_steps + i,
+                                                  task=env.task_name, record=args.capture_video and i == 0)
+                    returns.append(float(episode["return"]))
+                    if frames:
+                        write_gif(os.path.join(run_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
+                logger.log(env_steps, {"eval/episodic_return": np.mean(returns)})
+                progress.write(f"step {env_steps}: eval return {np.mean(returns):.1f}")
+                sys.stdout.flush()
+                while state["next_eval"] <= env_steps:
+                    state["next_eval"] += args.eval_every
+
+            # (c) collect one episode (random actions while prefilling) and store it atomically
+            if len(replay) < args.prefill_episodes:
+                act = lambda o: rng.uniform(-1, 1, env.action_size).astype(np.float32)  # noqa: E731
+            else:
+                policy.reset()
+                act = lambda o: policy.act(o, args.expl_noise, rng)  # noqa: E731
+            episode, _ = run_episode(env, act, seed=args.seed * 1_000_003 + len(replay), task=env.task_name)
+            save_episode(episode_dir, len(replay), episode)
+            replay.add(episode)
+            steps = (len(episode["reward"]) - 1) * args.action_repeat
+            env_steps += steps
+            progress.update(steps)
+            sps = (env_steps - start_steps) / (time.time() - start_time)
+            logger.log(env_steps, {"charts/episodic_return": float(episode["return"]),
+                                   "charts/episodic_length": steps, "charts/SPS": sps,
+                                   "charts/episodes": len(replay)})
+            progress.set_postfix(ret=f"{float(episode['return']):.1f}", sps=f"{sps:.1f}")
+            if progress.disable:  # no terminal (nohup, CI): one plain line per episode instead of the bar
+                print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "
+                      f"{float(episode['return']):.1f} | {sps:.1f} steps/s", flush=True)
+    finally:
+        progress.close()
+        logger.close()
+        env.close()
+        eval_env.close()
+
+
+if __name__ == "__main__":
+    try:
+        main(tyro.cli(Args))
+    except UsageError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)

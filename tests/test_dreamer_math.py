@@ -1,0 +1,153 @@
+"""Exact math of the Dreamer core on small hand-checked cases."""
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+
+import rama_dreamer as rd
+
+
+def test_lambda_return_hand_case():
+    # H=3, one trajectory; worked by hand: next values [1.0, 1.5, 2.0], inputs r + γ(1-λ)v' = [1.45, 2.675, 3.9]
+    # R2 = 3.9 + 0.45*2 = 4.8; R1 = 2.675 + 0.45*4.8 = 4.835; R0 = 1.45 + 0.45*4.835 = 3.62575
+    reward = torch.tensor([[1.0], [2.0], [3.0]])
+    value = torch.tensor([[0.5], [1.0], [1.5]])
+    pcont = torch.full((3, 1), 0.9)
+    returns = rd.lambda_return(reward, value, pcont, torch.tensor([2.0]), lam=0.5)
+    assert torch.allclose(returns[:, 0], torch.tensor([3.62575, 4.835, 4.8]), atol=1e-5)
+
+
+def test_lambda_return_limits():
+    reward, value = torch.tensor([[1.0], [2.0]]), torch.tensor([[10.0], [20.0]])
+    pcont, boot = torch.full((2, 1), 0.5), torch.tensor([40.0])
+    # λ=1: discounted Monte-Carlo return with bootstrap: 1 + .5*(2 + .5*40) = 12 ; 2 + .5*40 = 22
+    assert torch.allclose(rd.lambda_return(reward, value, pcont, boot, 1.0)[:, 0], torch.tensor([12.0, 22.0]))
+    # λ=0: one-step TD targets: 1 + .5*20 = 11 ; 2 + .5*40 = 22
+    assert torch.allclose(rd.lambda_return(reward, value, pcont, boot, 0.0)[:, 0], torch.tensor([11.0, 22.0]))
+
+
+def _state(mean, std):
+    mean, std = torch.tensor(mean, requires_grad=True), torch.tensor(std)
+    return {"mean": mean, "std": std}
+
+
+def test_kl_with_free_nats():
+    # KL(N(0,2) || N(0,1)) per dim = log(1/2) + 4/2 - 1/2 = 1.5 - ln 2 ; two dims -> 3 - 2 ln 2 ≈ 1.6137
+    post, prior = _state([[0.0, 0.0]], [[2.0, 2.0]]), _state([[0.0, 0.0]], [[1.0, 1.0]])
+    expected = 3.0 - 2.0 * math.log(2.0)
+    loss, value = rd.kl_with_free_nats(post, prior, free_nats=0.0)
+    assert loss.item() == pytest.approx(expected, abs=1e-5) and value.item() == pytest.approx(expected, abs=1e-5)
+    loss, value = rd.kl_with_free_nats(post, prior, free_nats=3.0)
+    assert loss.item() == pytest.approx(3.0) and value.item() == pytest.approx(expected, abs=1e-5)
+    # below the free nats, no gradient reaches the model
+    loss.backward()
+    assert post["mean"].grad is None or torch.all(post["mean"].grad == 0)
+    # KL averages over (B, T) before the clip (Dreamer v1): one KL of 0 and one of 2*0.5 -> mean 0.5
+    post, prior = _state([[0.0, 0.0], [1.0, 1.0]], [[1.0, 1.0]] * 2), _state([[0.0, 0.0]] * 2, [[1.0, 1.0]] * 2)
+    assert rd.kl_with_free_nats(post, prior, 0.0)[0].item() == pytest.approx(0.5)
+
+
+def test_tanh_normal_log_prob():
+    out = torch.tensor([[0.7, -1.2, 0.3, -0.4]])  # two action dims: raw means (0.7, -1.2), raw stds (0.3, -0.4)
+    dist = rd.tanh_normal(out, init_std=5.0, min_std=1e-4, mean_scale=5.0)
+    y = torch.tensor([[0.3, -0.8]])
+    expected = 0.0
+    for raw_mean, raw_std, a in [(0.7, 0.3, 0.3), (-1.2, -0.4, -0.8)]:
+        mean = 5.0 * math.tanh(raw_mean / 5.0)
+        std = math.log1p(math.exp(raw_std + math.log(math.expm1(5.0)))) + 1e-4
+        x = math.atanh(a)
+        expected += -0.5 * ((x - mean) / std) ** 2 - math.log(std) - 0.5 * math.log(2 * math.pi) - math.log(1 - a * a)
+    assert dist.log_prob(y).item() == pytest.approx(expected, abs=1e-4)
+    sample = dist.rsample((1000,))
+    assert sample.abs().max() <= 1.0
+    # before training (raw std 0) the std equals init_std
+    zero = rd.tanh_normal(torch.zeros(1, 2), 5.0, 0.0, 5.0)
+    assert zero.base_dist.base_dist.stddev.item() == pytest.approx(5.0, rel=1e-5)
+
+
+def _episode(length, task="t", offset=0):
+    steps = np.arange(length + 1) + offset
+    return {"obs": steps[:, None].astype(np.float32), "action": np.zeros((length + 1, 1), np.float32),
+            "reward": steps.astype(np.float32), "terminal": np.zeros(length + 1, bool), "task": task}
+
+
+def test_replay_chunks_are_contiguous_and_uniform():
+    replay = rd.Replay()
+    for length, offset in [(9, 0), (19, 1000), (2, 5000)]:  # 10, 20 and 3 steps
+        replay.add(_episode(length, offset=offset))
+    seq_len = 5
+    assert replay.num_chunks(seq_len) == 6 + 16 + 0
+    rng = np.random.default_rng(0)
+    batch = replay.sample(20000, seq_len, rng)
+    assert batch["obs"].shape == (20000, seq_len, 1) and batch["reward"].shape == (20000, seq_len)
+    first = batch["reward"][:, 0]
+    assert np.all(np.diff(batch["reward"], axis=1) == 1)  # contiguous
+    assert not np.any(first >= 5000)  # an episode shorter than L is never sampled
+    # uniform over the 22 chunks: every start appears, each about 1/22 of the time
+    starts, counts = np.unique(first, return_counts=True)
+    assert len(starts) == 22
+    assert np.all(np.abs(counts / 20000 - 1 / 22) < 0.01)
+    # the last chunk of an episode ends at its last step
+    assert first.max() == 1000 + 19 - seq_len + 1
+
+
+def test_episode_write_is_atomic(tmp_path, monkeypatch):
+    episode = _episode(4)
+    path = rd.save_episode(str(tmp_path), 3, episode)
+    assert os.path.basename(path) == "000003-4.npz"
+    loaded = rd.load_episode(path)
+    for key in ("obs", "action", "reward", "terminal"):
+        assert np.array_equal(loaded[key], episode[key])
+    assert loaded["task"] == "t"
+    assert os.listdir(tmp_path) == ["000003-4.npz"]  # no temp file left behind
+
+    def crash(f, **arrays):
+        f.write(b"half an episode")
+        raise KeyboardInterrupt("killed mid-write")
+
+    monkeypatch.setattr(rd.np, "savez_compressed", crash)
+    with pytest.raises(KeyboardInterrupt):
+        rd.save_episode(str(tmp_path), 4, episode)
+    # the interrupted episode never appears under its final name, and listing ignores the temp file
+    assert [os.path.basename(p) for p in rd.list_episode_files(str(tmp_path))] == ["000003-4.npz"]
+
+
+def test_load_episode_names_bad_file(tmp_path):
+    bad = tmp_path / "000000-10.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(rd.UsageError, match="000000-10.npz"):
+        rd.load_episode(str(bad))
+
+
+@pytest.mark.parametrize("shape", [(64, 64, 3), (64, 96, 3)])
+def test_decoder_mirrors_encoder(shape):
+    encoder = rd.ConvEncoder(shape, depth=4)
+    decoder = rd.ConvDecoder(10, shape, depth=4)
+    obs = torch.zeros(2, 3, shape[2], shape[0], shape[1])
+    assert encoder(obs).shape == (2, 3, encoder.embed_size)
+    assert decoder(torch.zeros(2, 3, 10)).shape == obs.shape
+
+
+def test_gaussian_loglik():
+    mean, target = torch.zeros(1, 1, 2), torch.tensor([[[1.0, 2.0]]])
+    expected = -0.5 * (1 + 4) - math.log(2 * math.pi)
+    assert rd.gaussian_loglik(mean, target, 1).item() == pytest.approx(expected)
+
+
+def test_actor_loss_trains_only_the_actor():
+    args = rd.Args(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, batch_size=2, seq_len=4)
+    agent = rd.Agent((5,), 2, args)
+    rng = np.random.default_rng(0)
+    replay = rd.synthetic_replay((5,), 2, episodes=1, length=10, rng=rng)
+    batch = rd.to_torch(replay.sample(2, 4, rng), "cpu")
+    before = {k: v.clone() for k, v in agent.state_dict().items()}
+    # with zero model and value learning rates, only the actor may move
+    for opt in (agent.model_opt, agent.value_opt):
+        opt.param_groups[0]["lr"] = 0.0
+    rd.train_step(agent, batch, args)
+    for key, value in agent.state_dict().items():
+        changed = not torch.equal(value, before[key])
+        assert changed == key.startswith("actor."), key
+    assert all(p.requires_grad for p in agent.parameters())  # Freeze restored gradients
