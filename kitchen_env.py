@@ -89,7 +89,7 @@ def _kitchen_xml(task):
   <visual>
     <global offwidth="1280" offheight="960"/>
     <map znear="0.005" zfar="25"/>  <!-- fractions of the extent: 2 cm near plane for a room-sized scene -->
-    <quality shadowsize="2048" offsamples="0"/>
+    <quality shadowsize="2048"/>
     <headlight ambient=".35 .35 .35" diffuse=".4 .4 .4" specular=".1 .1 .1"/>
   </visual>
   <default>
@@ -157,11 +157,11 @@ def _kitchen_xml(task):
       <geom type="cylinder" size=".065 .02" pos="{SHOULDER_XY[0]} 0 .69" material="joint"/>
       <!-- the UR5-like arm; gravity compensation lets moderate servo gains track without sagging -->
       <body name="shoulder" pos="{SHOULDER_XY[0]} 0 .71" gravcomp="1">
-        <joint name="pan" axis="0 0 1" range="-2.6 2.6"/>
+        <joint name="pan" axis="0 0 1" range="-1.7 1.7"/>
         <geom type="cylinder" size=".06 .045" pos="0 0 .045" material="joint"/>
         <geom type="cylinder" size=".06 .065" pos="0 0 .09" zaxis="0 1 0" material="joint"/>
         <body name="upper_arm" pos="0 0 .09" gravcomp="1">
-          <joint name="lift" axis="0 1 0" range="-0.6 1.9"/>
+          <joint name="lift" axis="0 1 0" range="-0.5 1.6"/>
           <geom type="capsule" fromto="0 0 0 0 0 .425" size=".045"/>
           <geom type="cylinder" size=".05 .055" pos="0 0 .425" zaxis="0 1 0" material="joint"/>
           <body name="forearm" pos="0 0 .425" gravcomp="1">
@@ -184,7 +184,7 @@ def _kitchen_xml(task):
                     <geom type="box" size=".008 .022 .03" material="arm"/>
                   </body>
                   <!-- the gripper's knuckle: the point the scripted expert pushes with -->
-                  <site name="knuckle" pos="0 0 .1" size=".012" rgba="1 .4 0 1"/>
+                  <site name="knuckle" pos="0 0 .1" size=".012" group="4"/>
                 </body>
               </body>
             </body>
@@ -305,6 +305,9 @@ class KitchenEnv(gymnasium.Env):
     def render_frame(self, width, height):
         """RGB frame (height, width, 3) uint8 from the front camera, at any size up to 1280x960."""
         if (width, height) not in self._renderers:
+            # Multisampling triples the CPU render time of a 96x64 observation for little gain at that size,
+            # so only larger frames (pictures, videos) get it. It is read when a renderer is created.
+            self.model.vis.quality.offsamples = 0 if (width, height) == (self.width, self.height) else 4
             renderer = mujoco.Renderer(self.model, height, width)
             renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows  # shadows cost ~5x render time
             self._renderers[width, height] = renderer
@@ -345,7 +348,8 @@ def scripted_action(env):
         behind = obj[:2] - direction * 0.09
         arrived = np.linalg.norm(knuckle[:2] - behind) < 0.02
         goal = np.array([*behind, low if arrived else high])
-        if knuckle[2] < high - 0.04 and not arrived:  # rise first, so the object is not swept on the way
+        near_object = np.linalg.norm(offset) < 0.12
+        if near_object and knuckle[2] < high - 0.04 and not arrived:  # rise first, not to sweep the object along
             goal[:2] = knuckle[:2]
     velocity = np.clip(4.0 * (goal - knuckle), -0.25, 0.25)  # desired knuckle velocity, m/s
 
@@ -353,10 +357,16 @@ def scripted_action(env):
     mujoco.mj_jacSite(env.model, env.data, jacobian, None, env._knuckle)
     jac = jacobian[:, env._dadr[:3]]  # (3, 3): pan, lift, elbow
     joint_velocity = jac.T @ np.linalg.solve(jac @ jac.T + 1e-4 * np.eye(3), velocity)  # damped least squares
-    desired = np.zeros(len(JOINTS))
-    desired[:3] = np.clip(joint_velocity, -MAX_VEL[:3], MAX_VEL[:3])
-    q = env.data.qpos[env._qadr]
-    desired[3:] = np.clip(2.0 * (HOME[3:] - q[3:]), -MAX_VEL[3:], MAX_VEL[3:])  # wrist and finger stay home
+    # The Cartesian controller stalls at joint limits and with the hand beside or under the table's edge (where
+    # random actions may leave it): there the arm goes home in joint space, first leaning back if the hand is low.
+    q, (lo, hi) = env.data.qpos[env._qadr], env._limits
+    home = HOME.copy()
+    if knuckle[2] < TABLE_Z + 0.05:
+        home[1] = lo[1] + 0.1
+    desired = np.clip(2.0 * (home - q), -MAX_VEL, MAX_VEL)  # wrist and finger always hold home
+    lost = knuckle[0] < 0.34 or knuckle[2] < TABLE_Z - 0.01 or np.any(np.minimum(q - lo, hi - q)[:3] < 0.05)
+    if not lost:
+        desired[:3] = np.clip(joint_velocity, -MAX_VEL[:3], MAX_VEL[:3])
     action = (desired - env._velocity) / (MAX_ACC * CONTROL_DT)  # the acceleration that reaches it in one step
     return np.clip(action[:env.active_joints], -1.0, 1.0).astype(np.float32)
 
@@ -367,3 +377,30 @@ for _task in OBJECTS:
     _id = f"Kitchen-{'BlueBox' if _task == 'bluebox' else 'BlueCone'}-v0"
     if _id not in gymnasium.registry:  # the module may be imported twice (as __main__ and as kitchen_env)
         gymnasium.register(_id, entry_point="kitchen_env:KitchenEnv", kwargs={"task": _task})
+
+
+if __name__ == "__main__":  # python kitchen_env.py --pictures docs/
+    import argparse
+
+    import imageio.v3 as iio
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pictures", default="docs", help="folder for the PNGs and the expert GIF")
+    folder = parser.parse_args().pictures
+    os.makedirs(folder, exist_ok=True)
+    for task in OBJECTS:
+        env = KitchenEnv(task=task)
+        obs, _ = env.reset(seed=0)
+        iio.imwrite(f"{folder}/kitchen_obs_{task}.png", obs.repeat(4, axis=0).repeat(4, axis=1))  # nearest 4x
+        iio.imwrite(f"{folder}/kitchen_render_{task}.png", env.render_frame(480, 320))
+        if task == "bluebox":  # the expert at 240x160, every 5th step (4 fps real time), until it has arrived
+            frames = []
+            for step in range(env.max_steps):
+                _, _, terminated, truncated, info = env.step(scripted_action(env))
+                if step % 5 == 0:
+                    frames.append(env.render_frame(240, 160))
+                if terminated or truncated or info["distance"] < 1.0:  # the expert stops within 1 cm
+                    break
+            iio.imwrite(f"{folder}/kitchen_expert_{task}.gif", np.stack(frames), duration=100, loop=0)
+            print(f"expert: {info['distance']:.2f} cm from the target after {step + 1} steps")
+        env.close()
