@@ -49,26 +49,32 @@ def _look_at(pos, target):
     return " ".join(f"{v:.4f}" for v in (*right, *up))
 
 
-def _cone_vertices(radius=0.04, height=0.09, n=24):
-    """Vertex list of a cone standing on its base; MuJoCo takes the convex hull of a mesh's vertices."""
-    ring = [(radius * np.cos(a), radius * np.sin(a), 0.0) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    return " ".join(f"{v:.4f}" for p in [*ring, (0.0, 0.0, height)] for v in p)
+CONE_RADIUS, CONE_HEIGHT = 0.04, 0.09
+FRICTION = 'friction=".4 .005 .0001" priority="1"'  # priority 1: the object's friction wins over the table's
 
 
-# The object body's origin sits at the centre of its base, so both objects start at height TABLE_Z.
-# Contact priority 1 makes the object's low friction (0.4) win over the table's: with friction 1 the cone tips.
+def _cone_xml(slabs=4, n=24):
+    """MuJoCo has no cone primitive: the visible cone is a convex mesh (MuJoCo takes the hull of the vertex
+    list) without contacts, and stacked hidden cylinders (group 3), each as wide as the cone at its mid-height,
+    carry the contacts so that the cone rests flat on its base. Returns the mesh asset and the geoms."""
+    ring = [(CONE_RADIUS * np.cos(a), CONE_RADIUS * np.sin(a), 0.0) for a in np.linspace(0, 2 * np.pi, n, False)]
+    vertices = " ".join(f"{v:.4f}" for p in [*ring, (0.0, 0.0, CONE_HEIGHT)] for v in p)
+    mesh = f'<mesh name="cone" vertex="{vertices}"/>'
+    geoms = '<geom type="mesh" mesh="cone" material="object" contype="0" conaffinity="0" mass="0"/>'
+    half = 0.8 * CONE_HEIGHT / slabs / 2  # the slabs cover the lower 80 %; the thin tip needs no contacts
+    for i in range(slabs):
+        z = (2 * i + 1) * half
+        radius = CONE_RADIUS * (1 - z / CONE_HEIGHT)
+        geoms += (f'<geom type="cylinder" size="{radius:.4f} {half:.4f}" pos="0 0 {z:.4f}" group="3" '
+                  f'density="1000" {FRICTION}/>')
+    return mesh, geoms
+
+
+# (mesh asset, geoms) per task. The object body's origin is the centre of its base, so both start at TABLE_Z.
+# The object's friction is low (0.4): with MuJoCo's default of 1 the pushed cone tilts and may tip over.
 OBJECTS = {
-    "bluebox": """<geom type="box" size=".03 .03 .03" pos="0 0 .03" material="object" mass=".2"
-                        friction=".4 .005 .0001" priority="1"/>""",
-    # MuJoCo has no cone primitive: the visible cone is a convex mesh without contacts, and stacked
-    # cylinders inside it carry the contacts (a mesh apex makes the resting contact jittery).
-    "bluecone": """<geom type="mesh" mesh="cone" material="object" contype="0" conaffinity="0" mass="0"/>
-                   <geom type="cylinder" size=".035 .0125" pos="0 0 .0125" mass=".12" group="3"
-                         friction=".4 .005 .0001" priority="1"/>
-                   <geom type="cylinder" size=".024 .015" pos="0 0 .04" mass=".05" group="3"
-                         friction=".4 .005 .0001" priority="1"/>
-                   <geom type="cylinder" size=".012 .012" pos="0 0 .067" mass=".01" group="3"
-                         friction=".4 .005 .0001" priority="1"/>""",
+    "bluebox": ("", f'<geom type="box" size=".03 .03 .03" pos="0 0 .03" material="object" mass=".2" {FRICTION}/>'),
+    "bluecone": _cone_xml(),
 }
 
 
@@ -84,6 +90,8 @@ def _kitchen_xml(task):
     return f"""
 <mujoco model="kitchen">
   <compiler angle="radian" autolimits="true"/>
+  <!-- multiccd: several contacts between convex shapes; a cylinder on the table otherwise gets one, and the
+       cone sinks into the table and creeps -->
   <option timestep="{PHYSICS_DT}" integrator="implicitfast"><flag multiccd="enable"/></option>
   <statistic extent="4" center="0.3 0 0.8"/>
   <visual>
@@ -115,7 +123,7 @@ def _kitchen_xml(task):
     <material name="joint" rgba=".25 .25 .27 1"/>
     <material name="object" rgba=".05 .18 .95 1"/>
     <material name="zone" rgba=".30 .55 1 1"/>
-    <mesh name="cone" vertex="{_cone_vertices()}"/>
+    {OBJECTS[task][0]}
   </asset>
   <worldbody>
     <light name="ceiling" pos="0.3 0 2.6" dir="0 0 -1" diffuse=".55 .55 .55" castshadow="true"/>
@@ -194,7 +202,7 @@ def _kitchen_xml(task):
     </body>
     <body name="object" pos="{GOAL_XY[0]} {GOAL_XY[1] - START_DISTANCE} {TABLE_Z}">
       <freejoint name="object"/>
-      {OBJECTS[task]}
+      {OBJECTS[task][1]}
     </body>
   </worldbody>
   <actuator>
@@ -309,7 +317,7 @@ class KitchenEnv(gymnasium.Env):
             # so only larger frames (pictures, videos) get it. It is read when a renderer is created.
             self.model.vis.quality.offsamples = 0 if (width, height) == (self.width, self.height) else 4
             renderer = mujoco.Renderer(self.model, height, width)
-            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows  # shadows cost ~5x render time
+            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows  # ~20x render time on CPU
             self._renderers[width, height] = renderer
         renderer = self._renderers[width, height]
         renderer.update_scene(self.data, camera="front")
@@ -325,9 +333,9 @@ class KitchenEnv(gymnasium.Env):
 # ----------------------------------------------------------------------------------------------------------
 # Scripted expert
 def scripted_action(env):
-    """Push the object into the zone with the gripper's knuckle: hover to the spot behind the object (seen from
-    the target), descend, then push along the object-to-target line. A Cartesian velocity for the knuckle is
-    turned into joint velocities through the Jacobian of pan, lift and elbow, then into accelerations."""
+    """Push the object into the zone with the gripper's knuckle: travel above the spot behind the object (as seen
+    from the target), descend, then push along the object-to-target line. A Cartesian velocity for the knuckle
+    is turned into joint velocities through the Jacobian of pan, lift and elbow, then into accelerations."""
     env = env.unwrapped
     knuckle, obj = env.knuckle_pos(), env.object_pos()
     to_goal = GOAL_XY - obj[:2]
@@ -393,7 +401,7 @@ if __name__ == "__main__":  # python kitchen_env.py --pictures docs/
         obs, _ = env.reset(seed=0)
         iio.imwrite(f"{folder}/kitchen_obs_{task}.png", obs.repeat(4, axis=0).repeat(4, axis=1))  # nearest 4x
         iio.imwrite(f"{folder}/kitchen_render_{task}.png", env.render_frame(480, 320))
-        if task == "bluebox":  # the expert at 240x160, every 5th step (4 fps real time), until it has arrived
+        if task == "bluebox":  # the expert at 240x160, every 5th step (played 2.5x real time), until it arrives
             frames = []
             for step in range(env.max_steps):
                 _, _, terminated, truncated, info = env.step(scripted_action(env))

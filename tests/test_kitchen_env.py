@@ -150,8 +150,8 @@ def test_render_not_blank_and_object_visible(task):
 
 
 def test_close_leaves_no_egl_error_at_exit():
-    code = ("import kitchen_env; env = kitchen_env.KitchenEnv(); env.reset(seed=0); env.step(env.action_space.sample());"
-            "env.render_frame(240, 160); env.close(); print('ok')")
+    code = ("import kitchen_env; env = kitchen_env.KitchenEnv(); env.reset(seed=0);"
+            "env.step(env.action_space.sample()); env.render_frame(240, 160); env.close(); print('ok')")
     result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
                             env={**os.environ, "MUJOCO_GL": "egl"})
     assert result.returncode == 0 and result.stdout.strip() == "ok", result.stderr
