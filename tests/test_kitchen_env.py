@@ -100,9 +100,12 @@ def test_seeding():
 @pytest.mark.parametrize("task", TASKS)
 def test_scripted_expert_pushes_object_into_zone(task):
     env = kitchen_env.KitchenEnv(task=task, obs_type="state")  # no rendering: fast
-    returns = [rollout(env, seed, kitchen_env.scripted_action)[0] for seed in range(5)]
+    returns, successes = [], []
+    for seed in range(5):
+        returns.append(rollout(env, seed, kitchen_env.scripted_action)[0])
+        successes.append(env._info()["success"])
     env.close()
-    assert sum(r >= 40 for r in returns) >= 3, returns
+    assert sum(r >= 40 for r in returns) >= 3 and sum(successes) >= 3, (returns, successes)
     assert max(returns) <= 50.0 + 1e-6  # the initial distance bounds the return
 
 
@@ -117,9 +120,22 @@ def test_scripted_expert_with_seven_joints():
 def test_random_actions_return_about_zero(task):
     env = kitchen_env.KitchenEnv(task=task, obs_type="state")
     env.action_space.seed(0)
-    returns = [rollout(env, seed, lambda e: e.action_space.sample())[0] for seed in range(3)]
+    # Random accelerations rarely reach the object (about 1 episode in 20 moves it at all), so returns are ~0.
+    returns = [rollout(env, seed, lambda e: e.action_space.sample())[0] for seed in range(4)]
     env.close()
-    assert all(abs(r) < 5 for r in returns), returns
+    assert abs(np.mean(returns)) < 5 and all(abs(r) < 15 for r in returns), returns
+
+
+def test_terminates_when_the_object_falls_off_the_table():
+    env = kitchen_env.KitchenEnv(obs_type="state")
+    env.reset(seed=0)
+    env.data.qpos[env._obj:env._obj + 2] = [1.25, 0.0]  # just past the table's far edge (x = 1.12)
+    for step in range(20):
+        _, _, terminated, truncated, _ = env.step(np.zeros(3, np.float32))
+        if terminated:
+            break
+    assert terminated and not truncated and step < 10
+    env.close()
 
 
 def test_blocked_arm_does_not_wind_up():
