@@ -35,7 +35,7 @@ import random
 import sys
 import time
 from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Literal, Optional, Tuple
 
 import numpy as np
 import torch
@@ -57,8 +57,12 @@ class Args:
     """the name of this experiment (part of the run folder's name)"""
     env_id: str = "dmc/walker-walk"
     """the environment: `dmc/<domain>-<task>` (any DeepMind Control suite task)"""
-    method: Literal["dreamer"] = "dreamer"
-    """the agent: `dreamer` (no prior data)"""
+    method: Literal["dreamer", "uniform", "vrama", "rrama", "rbrama"] = "dreamer"
+    """`dreamer` (no prior data), `uniform` (prior chunks mixed in uniformly: the paper's "No addressing"),
+    `vrama` (Eq. 1), `rrama` (Eq. 2), `rbrama` (Eq. 3)"""
+    task_sequence: Optional[str] = None
+    """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk,walker-run` (the agent
+    restarts per task; the addressing model and the multitask buffer carry over); overrides --env-id"""
     seed: int = 1
     """seed of python, numpy, torch, the environment and every sampler"""
     device: str = "auto"
@@ -146,12 +150,47 @@ class Args:
     prefill_episodes: int = 1
     """S: random-action episodes collected before training (the paper: 1)"""
 
+    # Addressing (RAMa)
+    prior_dirs: Tuple[str, ...] = ()
+    """episode folders (or run folders holding `episodes/`) of earlier runs: the multitask buffer M"""
+    prior_min_return: Optional[float] = None
+    """keep only prior episodes whose return is at least this (the paper: 600 for walker walk)"""
+    prior_max_episodes: int = 1000
+    """K: prior episodes kept, subsampled at random"""
+    address_prob: float = 0.5
+    """p: probability that a world-model batch mixes in multitask chunks"""
+    current_fraction: float = 0.5
+    """β: fraction of a mixed batch that stays current-task chunks"""
+    address_batch: int = 50
+    """m: multitask chunks scored against the current chunks per addressing update"""
+    address_lr: float = 1e-3
+    """Adam learning rate of the addressing model"""
+    address_grad_clip: float = 100.0
+    """gradient norm clipping of the addressing model"""
+    address_units: int = 200
+    """GRU size of the addressing model = size of a trajectory embedding"""
+    address_cnn_depth: int = 16
+    """channel multiplier of the addressing model's own conv encoder"""
+    address_stop_grad_x: Optional[bool] = None
+    """stop the gradient through f(x); None = on for rrama and rbrama, off for vrama"""
+    address_standardize: bool = True
+    """standardise the REINFORCE advantages over the batch (as the authors' code does)"""
+    address_refresh: int = 100
+    """recompute the embeddings D of the candidate chunks every this many updates (C in Algorithm 2)"""
+    address_candidates: int = 10_000
+    """most candidate chunks of M held in D (a random subset of M's chunks at each refresh)"""
+    wm_on_addressed: bool = True
+    """train the world model on addressed chunks too (--no-wm-on-addressed: they only start imagination)"""
+    address_plot_every: int = 10
+    """draw the addressing-probabilities picture every this many episodes"""
+
 
 def check_args(args: Args) -> None:
     """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
     positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
                 "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
-                "prefill_episodes", "benchmark_updates"]
+                "prefill_episodes", "benchmark_updates", "prior_max_episodes", "address_batch", "address_units",
+                "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every"]
     for name in positive:
         if getattr(args, name) <= 0:
             raise UsageError(f"--{name.replace('_', '-')} must be > 0 (got {getattr(args, name)})")
@@ -160,12 +199,25 @@ def check_args(args: Args) -> None:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
     if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
         raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
+    if not 0.0 <= args.address_prob <= 1.0 or not 0.0 <= args.current_fraction <= 1.0:
+        raise UsageError("--address-prob and --current-fraction must be in [0, 1]")
+    if args.method == "dreamer" and args.prior_dirs:
+        raise UsageError("--prior-dirs needs a method that uses prior data (uniform, vrama, rrama, rbrama)")
     if args.seq_len < 2:
         raise UsageError(f"--seq-len must be >= 2 (got {args.seq_len})")
     if args.time_limit // args.action_repeat < args.seq_len:
         raise UsageError(f"--seq-len {args.seq_len} is longer than an episode "
                          f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
-    make_env_spec(args.env_id)  # raises a UsageError naming --env-id
+    for env_id in task_list(args):
+        make_env_spec(env_id)  # raises a UsageError naming --env-id
+
+
+def task_list(args: Args) -> list:
+    """The env ids to train in order: --task-sequence (short names get --env-id's suite) or just --env-id."""
+    if not args.task_sequence:
+        return [args.env_id]
+    suite_name = args.env_id.split("/")[0]
+    return [t if "/" in t else f"{suite_name}/{t}" for t in args.task_sequence.split(",") if t.strip()]
 
 
 class UsageError(Exception):
@@ -183,7 +235,7 @@ def make_env_spec(env_id: str) -> dict:
     domain, _, task = name.partition("-")
     if suite_name != "dmc" or (domain, task) not in suite.ALL_TASKS:
         known = ", ".join(f"dmc/{d}-{t}" for d, t in suite.ALL_TASKS[:4])
-        raise UsageError(f"--env-id {env_id!r} is not a known environment (e.g. {known}, ...)")
+        raise UsageError(f"--env-id/--task-sequence: {env_id!r} is not a known environment (e.g. {known}, ...)")
     return {"suite": suite_name, "domain": domain, "task": task, "name": name}
 
 
@@ -245,8 +297,8 @@ class DMCEnv:
         self._env.physics.free()  # dm_control's env.close() frees nothing
 
 
-def make_env(args: Args, seed: int):
-    return DMCEnv(args.env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit, args.camera)
+def make_env(args: Args, env_id: str, seed: int):
+    return DMCEnv(env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit, args.camera)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -293,13 +345,17 @@ class Replay:
     """
 
     def __init__(self):
-        self.episodes, self.tasks = [], []
+        self.episodes, self.tasks, self.returns = [], [], []
         self._lengths = np.zeros(0, np.int64)  # (E,) steps per episode (T+1)
 
     def add(self, episode: dict):
         self.episodes.append(episode)
-        self.tasks.append(episode["task"])
+        self.tasks.append(str(episode["task"]))
+        self.returns.append(float(episode["reward"].sum()))
         self._lengths = np.append(self._lengths, len(episode["reward"]))
+
+    def memory_bytes(self) -> int:
+        return sum(v.nbytes for ep in self.episodes for v in ep.values() if isinstance(v, np.ndarray))
 
     def __len__(self):
         return len(self.episodes)
@@ -323,6 +379,62 @@ class Replay:
 
     def sample(self, n: int, seq_len: int, rng: np.random.Generator) -> dict:
         return self.gather(*self.sample_ids(n, seq_len, rng), seq_len)
+
+    def grid_ids(self, seq_len: int, cap: int, rng: np.random.Generator):
+        """Non-overlapping chunks of every episode (a random phase each), at most `cap` of them at random."""
+        episode_ids, starts = [], []
+        for e, length in enumerate(self._lengths):
+            if length >= seq_len:
+                first = rng.integers(0, length - seq_len + 1) % seq_len
+                grid = np.arange(first, length - seq_len + 1, seq_len)
+                episode_ids.append(np.full(len(grid), e))
+                starts.append(grid)
+        episode_ids, starts = np.concatenate(episode_ids), np.concatenate(starts)
+        if len(starts) > cap:
+            keep = rng.choice(len(starts), cap, replace=False)
+            episode_ids, starts = episode_ids[keep], starts[keep]
+        return episode_ids, starts
+
+
+def episode_folders(directory: str) -> list:
+    """Where a run keeps episodes: DIR itself, DIR/episodes, or DIR/*/episodes (a --task-sequence run)."""
+    for pattern in ("", "episodes", os.path.join("*", "episodes")):
+        folders = [d for d in sorted(glob.glob(os.path.join(directory, pattern))) if list_episode_files(d)]
+        if folders:
+            return folders
+    return []
+
+
+def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_size: int, rng) -> list:
+    """The multitask buffer M: episodes of earlier runs, filtered by return, K of them at random."""
+    paths = []
+    for directory in dirs:
+        if not os.path.isdir(directory):
+            raise UsageError(f"--prior-dirs {directory}: no such folder")
+        folders = episode_folders(directory)
+        if not folders:
+            raise UsageError(f"--prior-dirs {directory}: holds no episode files (NNNNNN-LEN.npz)")
+        paths += [p for folder in folders for p in list_episode_files(folder)]
+    if min_return is not None:  # reading one member of an .npz is cheap: filter before loading images
+        def stored_return(path):
+            try:
+                with np.load(path) as data:
+                    return float(data["return"])
+            except Exception as e:
+                raise UsageError(f"{path}: not a readable episode file ({type(e).__name__}: {e})") from None
+        paths = [p for p in paths if stored_return(p) >= min_return]
+        if not paths:
+            raise UsageError(f"--prior-min-return {min_return}: no prior episode has that return")
+    if len(paths) > max_episodes:
+        paths = [paths[i] for i in sorted(rng.choice(len(paths), max_episodes, replace=False))]
+    episodes = []
+    for path in paths:
+        episode = load_episode(path)
+        if episode["obs"].shape[1:] != tuple(obs_shape) or episode["action"].shape[1:] != (action_size,):
+            raise UsageError(f"{path}: observations {episode['obs'].shape[1:]} / actions {episode['action'].shape[1:]}"
+                             f" do not match the environment's {tuple(obs_shape)} / ({action_size},)")
+        episodes.append(episode)
+    return episodes
 
 
 def preprocess_obs(obs, device):
@@ -532,13 +644,41 @@ def tanh_normal(out, init_std, min_std, mean_scale):
     return td.Independent(dist, 1)
 
 
+# ALGO LOGIC: addressing
+class AddressNet(nn.Module):
+    """f_φ: a chunk of trajectory -> an embedding (B, units).
+
+    Its own encoder (not the world model's: the features that make a good addressing are not those that make a
+    good reconstruction) reads each frame; [frame features, action, reward] pass an ELU layer into a GRU whose
+    last output is the embedding.
+    """
+
+    def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int):
+        super().__init__()
+        self.encoder = ConvEncoder(obs_shape, cnn_depth) if len(obs_shape) == 3 else MLPEncoder(obs_shape[0], units)
+        self.inp = nn.Sequential(nn.Linear(self.encoder.embed_size + action_size + 1, units), nn.ELU())
+        self.gru = nn.GRU(units, units, batch_first=True)
+
+    def forward(self, obs, action, reward):  # (B, T, ...) -> (B, units)
+        x = self.inp(torch.cat([self.encoder(obs), action, reward[..., None]], -1))  # (B, T, units)
+        return self.gru(x)[0][:, -1]
+
+
 # ----------------------------------------------------------------------------------------------------------
 # 6. Losses and imagination
 # ----------------------------------------------------------------------------------------------------------
-def kl_with_free_nats(post: dict, prior: dict, free_nats: float):
+def masked_mean(x, mask=None):
+    """Mean of x (B, T) over the chunks whose mask (B,) is 1 (all chunks when mask is None)."""
+    if mask is None:
+        return x.mean()
+    return (x * mask[:, None]).sum() / (mask.sum() * x.shape[1]).clamp(min=1.0)
+
+
+def kl_with_free_nats(post: dict, prior: dict, free_nats: float, mask=None):
     """KL(post || prior) summed over the state, averaged over (B, T), then clipped below at free_nats (v1)."""
     kl = td.kl_divergence(td.Normal(post["mean"], post["std"]), td.Normal(prior["mean"], prior["std"])).sum(-1)
-    return torch.clamp(kl.mean(), min=free_nats), kl.mean()
+    kl = masked_mean(kl, mask)
+    return torch.clamp(kl, min=free_nats), kl
 
 
 def gaussian_loglik(mean, target, event_dims: int):
@@ -547,22 +687,22 @@ def gaussian_loglik(mean, target, event_dims: int):
     return loglik.flatten(2).sum(-1) if event_dims else loglik
 
 
-def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: float, reward_mask=None):
+def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: float, reward_mask=None,
+                     model_mask=None):
     """ELBO of a batch of chunks: (KL with free nats) - log p(o|s) - log p(r|s). Returns loss, posts, metrics.
 
-    reward_mask (B, T) drops the reward term on chunks whose reward belongs to another task.
+    reward_mask (B,) drops the reward term on chunks whose reward belongs to another task; model_mask (B,) drops
+    chunks from the whole loss (--no-wm-on-addressed). Posteriors come back for every chunk.
     """
     embed = wm.encoder(batch["obs"])  # (B, T, E)
     post, prior = wm.rssm.observe(embed, batch["action"])
     feat = wm.rssm.feat(post)  # (B, T, F)
     obs_dims = 3 if batch["obs"].dim() == 5 else 1
-    obs_loglik = gaussian_loglik(wm.decoder(feat), batch["obs"], obs_dims).mean()
-    reward_loglik = gaussian_loglik(wm.reward(feat).squeeze(-1), batch["reward"], 0)  # (B, T)
-    if reward_mask is None:
-        reward_loglik = reward_loglik.mean()
-    else:
-        reward_loglik = (reward_loglik * reward_mask).sum() / reward_mask.sum().clamp(min=1.0)
-    kl_loss, kl_value = kl_with_free_nats(post, prior, free_nats)
+    obs_loglik = masked_mean(gaussian_loglik(wm.decoder(feat), batch["obs"], obs_dims), model_mask)
+    if model_mask is not None:
+        reward_mask = model_mask if reward_mask is None else reward_mask * model_mask
+    reward_loglik = masked_mean(gaussian_loglik(wm.reward(feat).squeeze(-1), batch["reward"], 0), reward_mask)
+    kl_loss, kl_value = kl_with_free_nats(post, prior, free_nats, model_mask)
     loss = kl_scale * kl_loss - obs_loglik - reward_loglik
     metrics = {"losses/world_model": loss, "losses/kl": kl_value, "losses/obs_loglik": obs_loglik,
                "losses/reward_loglik": reward_loglik}
@@ -650,11 +790,11 @@ class Agent(nn.Module):
         return {"model": self.model_opt, "actor": self.actor_opt, "value": self.value_opt}
 
 
-def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None) -> dict:
+def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_mask=None) -> dict:
     """One Dreamer update: world model on the batch, then actor and value in imagination from its posteriors."""
     timings = {}
     t0 = time.perf_counter()
-    wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask)
+    wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask)
     metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(), args.grad_clip)
     timings["world_model"] = time.perf_counter() - t0
 
@@ -674,6 +814,142 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None) -> dict:
     metrics["charts/imagined_return"] = returns.mean()
     timings["actor_critic"] = time.perf_counter() - t0
     return {"metrics": metrics, "timings": timings}
+
+
+# ALGO LOGIC: addressing — q(j | x, M) = softmax_j(f(x)ᵀ f(M_j)) and the three objectives
+def address_logits(emb_x, emb_m, stop_grad_x: bool):
+    """(n, U) current-task embeddings, (m, U) multitask embeddings -> (n, m) logits, a plain dot product."""
+    return (emb_x.detach() if stop_grad_x else emb_x) @ emb_m.T
+
+
+def straight_through_sample(logits):
+    """One-hot samples j ~ softmax(logits) (n, m) whose gradient is that of the probabilities (no Gumbel noise)."""
+    probs = logits.softmax(-1)
+    index = torch.multinomial(probs.detach(), 1).squeeze(-1)  # (n,)
+    one_hot = F.one_hot(index, probs.shape[-1]).to(probs.dtype)
+    return one_hot + probs - probs.detach(), index  # forward: exactly one-hot; backward: d/d probs
+
+
+def select_chunks(one_hot, chunks):
+    """Differentiable selection by index: (n, m) one-hots times a batch (m, T, ...) -> (n, T, ...)."""
+    return torch.einsum("nm,m...->n...", one_hot, chunks)
+
+
+@torch.no_grad()
+def predicted_reward_sum(wm: WorldModel, batch: dict):
+    """Σ_t of the reward head on the posterior states of each chunk: (B,), the bandit's reward (Eqs. 2-3)."""
+    post, _ = wm.rssm.observe(wm.encoder(batch["obs"]), batch["action"])
+    return wm.reward(wm.rssm.feat(post)).squeeze(-1).sum(1)
+
+
+def reinforce_loss(logits, index, advantage, standardize: bool):
+    """Eqs. 2-3: −A · log q(j | x). Minimising it raises the probability of picks with A > 0."""
+    advantage = advantage.detach()
+    if standardize and advantage.numel() > 1:
+        advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+    log_q = logits.log_softmax(-1).gather(-1, index[:, None]).squeeze(-1)  # (n,)
+    return -(advantage * log_q).mean()
+
+
+def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float, lam: float):
+    """Eq. 1: imagine from the posteriors of the selected chunks M_j and return −Σ_t V_λ (mean over starts).
+
+    The agent stays fixed (frozen); the gradient reaches φ through the one-hots, the inputs of the world model.
+    """
+    obs, action = select_chunks(one_hot, m_batch["obs"]), select_chunks(one_hot, m_batch["action"])  # (n, L, ...)
+    with Freeze(agent):
+        post, _ = agent.wm.rssm.observe(agent.wm.encoder(obs), action)
+        start = {k: v.flatten(0, 1) for k, v in post.items()}  # (n*L, ...), not detached: φ learns through it
+        feats = imagine(agent.wm, agent.actor, start, horizon)
+        returns, weights = imagined_returns(agent.wm, agent.value, feats, gamma, lam)
+        return -(weights * returns).mean()
+
+
+class Addressing:
+    """The addressing model f_φ, its optimiser, and the embeddings D of the candidate chunks of M (Algorithm 2)."""
+
+    def __init__(self, obs_shape, action_size: int, args: Args, device):
+        self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth).to(device)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr)
+        self.method, self.device = args.method, device
+        self.stop_grad_x = args.address_stop_grad_x
+        if self.stop_grad_x is None:
+            self.stop_grad_x = args.method in ("rrama", "rbrama")
+        self.candidates = None  # (episode ids, starts) of the chunks embedded in D
+        self.D = None  # (N_c, U)
+
+    def embed(self, batch: dict):
+        return self.net(batch["obs"], batch["action"], batch["reward"])
+
+    def train(self, agent: Agent, x: dict, m_batch: dict, args: Args) -> dict:
+        """(a) of Algorithm 2: score m multitask chunks against each x_i, sample j, step φ on Eq. 1, 2 or 3."""
+        logits = address_logits(self.embed(x), self.embed(m_batch), self.stop_grad_x)  # (n, m)
+        if self.method == "vrama":
+            one_hot, index = straight_through_sample(logits)
+            loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda)
+        else:
+            index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
+            advantage = predicted_reward_sum(agent.wm, m_batch)[index]  # Eq. 2 (RRAMa)
+            if self.method == "rbrama":  # Eq. 3 (RbRAMa): the predicted reward sum of x_i as the baseline
+                advantage = advantage - predicted_reward_sum(agent.wm, x)
+            loss = reinforce_loss(logits, index, advantage, args.address_standardize)
+        grad_norm = optimizer_step(self.opt, loss, self.net.parameters(), args.address_grad_clip)
+        log_q = logits.detach().log_softmax(-1)
+        entropy = -(log_q.exp() * log_q).sum(-1).mean()
+        return {"addressing/loss": loss.detach(), "addressing/entropy": entropy,
+                "addressing/entropy_uniform": torch.tensor(np.log(logits.shape[-1])),
+                "addressing/grad_norm": grad_norm}
+
+    @torch.no_grad()
+    def refresh(self, multitask: Replay, seq_len: int, cap: int, rng, chunk_batch: int = 64):
+        """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks (once per C updates)."""
+        self.candidates = multitask.grid_ids(seq_len, cap, rng)
+        parts = []
+        for i in range(0, len(self.candidates[0]), chunk_batch):
+            ids = (self.candidates[0][i:i + chunk_batch], self.candidates[1][i:i + chunk_batch])
+            parts.append(self.embed(to_torch(multitask.gather(*ids, seq_len), self.device)))
+        self.D = torch.cat(parts, 0)  # (N_c, U)
+
+    @torch.no_grad()
+    def probs(self, x: dict):
+        """q̂(j | x_i) ∝ exp(f(x_i)ᵀ D_j) over the candidates: (n, N_c)."""
+        return (self.embed(x) @ self.D.T).softmax(-1)
+
+    def pick(self, x: dict):
+        """Candidate indices drawn from q̂ for each row of x: (n,) numpy."""
+        return torch.multinomial(self.probs(x), 1).squeeze(-1).cpu().numpy()
+
+
+def mix_batch(x_np: dict, m_np: dict) -> dict:
+    """Rows of the current chunks followed by rows of the multitask chunks."""
+    return {k: np.concatenate([x_np[k], m_np[k]], 0) for k in x_np}
+
+
+def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str):
+    """Heat map of q̂(j | x_i): rows = current chunks, columns = candidates sorted by task then stored return."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    order = np.lexsort((returns, np.array(tasks)))
+    fig, (ax, ax_ret) = plt.subplots(2, 1, figsize=(9, 4.5), sharex=True, height_ratios=[4, 1])
+    image = ax.imshow(probs[:, order], aspect="auto", interpolation="nearest", cmap="viridis")
+    fig.colorbar(image, ax=[ax, ax_ret], label="q̂(j | x_i)")
+    sorted_tasks = [tasks[i] for i in order]
+    for i in range(1, len(order)):  # task boundaries
+        if sorted_tasks[i] != sorted_tasks[i - 1]:
+            ax.axvline(i - 0.5, color="white", lw=1)
+            ax_ret.axvline(i - 0.5, color="gray", lw=1)
+    for task in dict.fromkeys(sorted_tasks):
+        idx = [i for i, t in enumerate(sorted_tasks) if t == task]
+        ax.text(np.mean(idx), -0.8, task, ha="center", va="bottom", fontsize=8)
+    ax.set_ylabel("current chunk x_i")
+    ax.set_title(title, pad=14)
+    ax_ret.plot(np.arange(len(order)), returns[order], lw=1)
+    ax_ret.set_ylabel("return")
+    ax_ret.set_xlabel("candidate chunk j (sorted by task, then stored episode return)")
+    return fig
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -877,11 +1153,11 @@ def setup_run(args: Args):
                                    device=args.device)
         check_args(args)
         return args, args.resume
-    env_name = args.env_id.replace("/", "_")
+    env_name = "__".join(t.replace("/", "_") for t in task_list(args)[:1]) + ("_seq" if args.task_sequence else "")
     run_name = f"{env_name}__{args.exp_name}__{args.method}__{args.seed}__{int(time.time())}"
     run_path = os.path.join(args.run_dir, run_name)
     try:
-        os.makedirs(os.path.join(run_path, "episodes"), exist_ok=True)
+        os.makedirs(run_path, exist_ok=True)
         with open(os.path.join(run_path, "args.json"), "w") as f:
             json.dump(dataclasses.asdict(args), f, indent=2)
     except OSError as e:
@@ -889,36 +1165,107 @@ def setup_run(args: Args):
     return args, run_path
 
 
-def main(args: Args):
-    check_args(args)
-    if args.benchmark:
-        return benchmark(args)
-    device = resolve_device(args.device)
-    args, run_path = setup_run(args)
-    episode_dir = os.path.join(run_path, "episodes")
-    seed_everything(args.seed)
-    rng = np.random.default_rng(args.seed)
+def every(n: int, count: int) -> bool:
+    """True on every n-th count (count 0 included)."""
+    return count % n == 0
 
-    # the current task's replay: episodes already on disk count (a resumed run recovers its step count here)
+
+def update(agent: Agent, replay: Replay, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
+           device, task_name: str, updates_done: int) -> dict:
+    """One update of Algorithm 2: (a) the addressing step, (b) the agent's step on a batch that, with
+    probability p, is β·n current chunks plus (1-β)·n chunks of M picked by q̂ (or uniformly for `uniform`)."""
+    n, seq_len = args.batch_size, args.seq_len
+    timings, metrics, picks = {}, {}, None
+    t0 = time.perf_counter()
+    x_np = replay.sample(n, seq_len, rng)  # x_i ~ M_τ
+    timings["batch_sampling"] = time.perf_counter() - t0
+    use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
+
+    if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
+        t0 = time.perf_counter()
+        if addressing.D is None or every(args.address_refresh, updates_done):
+            addressing.refresh(multitask, seq_len, args.address_candidates, rng)
+            metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
+        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
+        metrics.update(addressing.train(agent, to_torch(x_np, device), m_batch, args))
+        timings["addressing"] = time.perf_counter() - t0
+
+    batch_np, reward_mask, model_mask = x_np, None, None
+    keep = int(round(args.current_fraction * n))
+    if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
+        t0 = time.perf_counter()
+        borrow = n - keep
+        if addressing is None:
+            picks = multitask.sample_ids(borrow, seq_len, rng)
+        else:
+            j = addressing.pick(to_torch({k: v[:borrow] for k, v in x_np.items()}, device))  # j ~ q̂(j | x_i)
+            picks = (addressing.candidates[0][j], addressing.candidates[1][j])
+        batch_np = mix_batch({k: v[:keep] for k, v in x_np.items()}, multitask.gather(*picks, seq_len))
+        tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
+        reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
+        if not args.wm_on_addressed:
+            model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
+        timings["batch_sampling"] += time.perf_counter() - t0
+    out = train_step(agent, to_torch(batch_np, device), args, reward_mask, model_mask)
+    out["metrics"].update(metrics)
+    out["timings"].update(timings)
+    out["picks"] = picks
+    return out
+
+
+def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int) -> dict:
+    """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
+    picked = [e for p in picks for e in p[0]]
+    metrics = {"addressing/mixed_batches": len(picks) / updates}
+    if not picked:
+        return metrics
+    tasks = [multitask.tasks[e] for e in picked]
+    for task in sorted(set(multitask.tasks)):
+        metrics[f"addressing/pick_fraction/{task}"] = tasks.count(task) / len(tasks)
+    metrics["addressing/picked_return"] = float(np.mean([multitask.returns[e] for e in picked]))
+    pool = addressing.candidates[0] if addressing is not None and addressing.candidates is not None \
+        else np.arange(len(multitask))
+    metrics["addressing/candidate_return"] = float(np.mean([multitask.returns[e] for e in pool]))
+    return metrics
+
+
+def save_addressing(path: str, addressing: Addressing):
+    torch.save({"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict()}, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
+               addressing: Optional[Addressing], rng, address_path: str):
+    """Algorithm 2 on one task: a fresh agent, the shared M and f_φ; resumes from task_path when it has data."""
+    episode_dir = os.path.join(task_path, "episodes")
+    os.makedirs(episode_dir, exist_ok=True)
+    # the current task's replay M_τ: episodes already on disk count (a resumed run recovers its step count here)
     replay = Replay()
     for path in list_episode_files(episode_dir):
-        replay.add(load_episode(path))
+        episode = load_episode(path)
+        replay.add(episode)
+        if args.method != "dreamer":
+            multitask.add(episode)  # M grows with every task's episodes (shared arrays, no copy)
     env_steps = sum(len(ep["reward"]) - 1 for ep in replay.episodes) * args.action_repeat
+    if env_steps >= args.total_steps:
+        print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
+        return
 
-    env, eval_env = make_env(args, args.seed), make_env(args, args.seed + 10_000)
+    env, eval_env = make_env(args, env_id, seed), make_env(args, env_id, seed + 10_000)
     agent = Agent(env.obs_shape, env.action_size, args).to(device)
     policy = Policy(agent, device)
     n_params = sum(p.numel() for p in agent.parameters())
-    state = {"updates": 0, "next_eval": args.eval_every, "trained_episodes": 0}
-    checkpoint_path = os.path.join(run_path, "checkpoint.pt")
+    state = {"updates": 0, "next_eval": args.eval_every}
+    checkpoint_path = os.path.join(task_path, "checkpoint.pt")
     if os.path.exists(checkpoint_path):
         state = load_checkpoint(checkpoint_path, agent)
         rng = np.random.default_rng([args.seed, len(replay)])  # fresh stream: resume is not bit-identical
-    logger = Logger(run_path, args)
-    if args.capture_video:
-        os.makedirs(os.path.join(run_path, "videos"), exist_ok=True)
-    print(f"run: {run_path} | {args.env_id} ({args.obs_type}) | method {args.method} | device {device} | "
-          f"{n_params / 1e6:.2f}M parameters | {len(replay)} episodes on disk ({env_steps} steps)", flush=True)
+    logger = Logger(task_path, args)
+    for folder in (["videos"] if args.capture_video else []) + (["addressing"] if addressing else []):
+        os.makedirs(os.path.join(task_path, folder), exist_ok=True)
+    print(f"run: {task_path} | {env_id} ({args.obs_type}) | method {args.method} | device {device} | "
+          f"{n_params / 1e6:.2f}M parameters | {len(replay)} episodes on disk ({env_steps} steps) | "
+          f"multitask buffer {len(multitask)} episodes", flush=True)
 
     from tqdm import tqdm
 
@@ -927,25 +1274,45 @@ def main(args: Args):
     start_time, start_steps = time.time(), env_steps
     try:
         while env_steps < args.total_steps:
-            # (a) C updates on chunks of the replay, once there is something to learn from
+            # (a) C updates on chunks of the replay (mixed with M), once there is something to learn from
             if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
-                sums, timings = {}, {"world_model": 0.0, "actor_critic": 0.0}
+                sums, timings, picks = {}, {}, []
                 for _ in range(args.updates_per_episode):
-                    batch = to_torch(replay.sample(args.batch_size, args.seq_len, rng), device)
-                    out = train_step(agent, batch, args)
+                    out = update(agent, replay, multitask, addressing, args, rng, device, env.task_name,
+                                 state["updates"])
+                    state["updates"] += 1
                     for k, v in out["metrics"].items():
                         sums[k] = sums.get(k, 0.0) + v.detach()
                     for k, v in out["timings"].items():
-                        timings[k] += v
-                state["updates"] += args.updates_per_episode
+                        timings[k] = timings.get(k, 0.0) + v
+                    if out["picks"] is not None:
+                        picks.append(out["picks"])
                 metrics = {k: v.item() / args.updates_per_episode for k, v in sums.items()}
+                if "addressing/refresh_seconds" in sums:  # a sum of refreshes, not a per-update mean
+                    metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
                 metrics.update({f"time/{k}_per_update": v / args.updates_per_episode for k, v in timings.items()})
+                if args.method != "dreamer":
+                    metrics.update(picks_metrics(picks, multitask, addressing, args.updates_per_episode))
                 metrics["charts/updates"] = state["updates"]
                 logger.log(env_steps, metrics)
                 save_checkpoint(checkpoint_path, agent, state)
+                if addressing is not None:
+                    save_addressing(address_path, addressing)
                 if args.capture_video:
-                    frames = open_loop_frames(agent.wm, batch)
-                    write_gif(os.path.join(run_path, "videos", f"openloop_{env_steps:08d}.gif"), frames)
+                    batch = to_torch(replay.sample(4, args.seq_len, rng), device)
+                    write_gif(os.path.join(task_path, "videos", f"openloop_{env_steps:08d}.gif"),
+                              open_loop_frames(agent.wm, batch))
+                if addressing is not None and addressing.D is not None and every(args.address_plot_every, len(replay)):
+                    import matplotlib.pyplot as plt
+
+                    x = to_torch(replay.sample(16, args.seq_len, rng), device)
+                    cand_episodes = addressing.candidates[0]
+                    fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
+                                            np.array([multitask.returns[e] for e in cand_episodes]),
+                                            f"{args.method} on {env.task_name}, step {env_steps}")
+                    fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
+                    logger.writer.add_figure("addressing/probabilities", fig, env_steps)
+                    plt.close(fig)
 
             # (b) evaluation without exploration noise, every eval_every environment steps
             if args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes:
@@ -953,11 +1320,11 @@ def main(args: Args):
                 for i in range(args.eval_episodes):
                     policy.reset()
                     episode, frames = run_episode(eval_env, lambda o: policy.act(o, None, rng),
-                                                  seed=args.seed * 1_000_003 + 7919 * env_steps + i,
+                                                  seed=seed * 1_000_003 + 7919 * env_steps + i,
                                                   task=env.task_name, record=args.capture_video and i == 0)
                     returns.append(float(episode["return"]))
                     if frames:
-                        write_gif(os.path.join(run_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
+                        write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
                 logger.log(env_steps, {"eval/episodic_return": np.mean(returns)})
                 progress.write(f"step {env_steps}: eval return {np.mean(returns):.1f}")
                 sys.stdout.flush()
@@ -970,9 +1337,11 @@ def main(args: Args):
             else:
                 policy.reset()
                 act = lambda o: policy.act(o, args.expl_noise, rng)  # noqa: E731
-            episode, _ = run_episode(env, act, seed=args.seed * 1_000_003 + len(replay), task=env.task_name)
+            episode, _ = run_episode(env, act, seed=seed * 1_000_003 + len(replay), task=env.task_name)
             save_episode(episode_dir, len(replay), episode)
             replay.add(episode)
+            if args.method != "dreamer":
+                multitask.add(episode)
             steps = (len(episode["reward"]) - 1) * args.action_repeat
             env_steps += steps
             progress.update(steps)
@@ -989,6 +1358,43 @@ def main(args: Args):
         logger.close()
         env.close()
         eval_env.close()
+
+
+def main(args: Args):
+    check_args(args)
+    if args.benchmark:
+        return benchmark(args)
+    device = resolve_device(args.device)
+    args, run_path = setup_run(args)
+    seed_everything(args.seed)
+    rng = np.random.default_rng(args.seed)
+    tasks = task_list(args)
+    probe = make_env(args, tasks[0], args.seed)
+    obs_shape, action_size = probe.obs_shape, probe.action_size
+    probe.close()
+
+    # the multitask buffer M: prior episodes (the same K are drawn again on resume: same seed, same files)
+    multitask = Replay()
+    if args.prior_dirs:
+        for episode in load_prior_episodes(args.prior_dirs, args.prior_min_return, args.prior_max_episodes,
+                                           obs_shape, action_size, rng):
+            multitask.add(episode)
+        counts = {t: multitask.tasks.count(t) for t in sorted(set(multitask.tasks))}
+        print(f"multitask buffer: {len(multitask)} prior episodes {counts}, "
+              f"{multitask.memory_bytes() / 2**30:.2f} GiB in memory", flush=True)
+    addressing = None
+    address_path = os.path.join(run_path, "address.pt")
+    if args.method in ("vrama", "rrama", "rbrama"):
+        addressing = Addressing(obs_shape, action_size, args, device)
+        if os.path.exists(address_path):
+            saved = torch.load(address_path, map_location=device)
+            addressing.net.load_state_dict(saved["net"])
+            addressing.opt.load_state_dict(saved["opt"])
+
+    # Algorithm 1: tasks in order; the agent restarts per task, M and f_φ carry over
+    for k, env_id in enumerate(tasks):
+        task_path = run_path if len(tasks) == 1 else os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
+        train_task(args, env_id, args.seed + 1000 * k, task_path, device, multitask, addressing, rng, address_path)
 
 
 if __name__ == "__main__":
