@@ -86,7 +86,7 @@ def _kitchen_xml(task):
         f'<geom class="decor" type="box" size=".005 .27 .36" pos="-1.19 {y:.2f} .46" material="door"/>'
         f'<geom class="decor" type="box" size=".015 .06 .01" pos="-1.17 {y:.2f} .72" material="steel"/>'
         for y in np.arange(-1.5, 1.6, 0.6))
-    camera = np.array([1.3, -1.05, 1.6])
+    camera = np.array([1.5, -0.6, 1.5])
     return f"""
 <mujoco model="kitchen">
   <compiler angle="radian" autolimits="true"/>
@@ -128,7 +128,7 @@ def _kitchen_xml(task):
   <worldbody>
     <light name="ceiling" pos="0.3 0 2.6" dir="0 0 -1" diffuse=".55 .55 .55" castshadow="true"/>
     <light name="window" directional="true" pos="0 0 3" dir="-.4 .3 -1" diffuse=".25 .25 .25" castshadow="true"/>
-    <camera name="front" pos="{' '.join(map(str, camera))}" xyaxes="{_look_at(camera, [0.35, 0.02, 0.88])}" fovy="45"/>
+    <camera name="front" pos="{' '.join(map(str, camera))}" xyaxes="{_look_at(camera, [0.4, 0.0, 0.93])}" fovy="45"/>
     <geom name="floor" type="box" size="3 3 .01" pos="0 0 -.01" material="floor"/>
     <!-- kitchen: walls, a counter with cabinets, a stove, a sink, upper cabinets and a fridge -->
     <geom class="decor" type="box" size=".05 3 1.4" pos="-1.85 0 1.4" material="wall"/>
