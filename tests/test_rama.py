@@ -1,0 +1,254 @@
+"""RAMa: the addressing math (Eqs. 1-3), batch mixing and masking, prior folders, and runs of every method."""
+import glob
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import rama_dreamer as rd
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCRIPT = os.path.join(ROOT, "rama_dreamer.py")
+SMALL = dict(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, batch_size=4, seq_len=5,
+             address_units=8, address_cnn_depth=2, address_batch=6)
+
+
+def test_straight_through_selects_exactly_and_passes_gradients():
+    torch.manual_seed(0)
+    logits = torch.randn(3, 5, requires_grad=True)
+    chunks = torch.randn(5, 4, 2)  # m=5 chunks of T=4 steps
+    one_hot, index = rd.straight_through_sample(logits)
+    selected = rd.select_chunks(one_hot, chunks)
+    assert torch.equal(selected, chunks[index])  # forward pass: exactly M_j, bit for bit
+    assert torch.equal(one_hot.detach(), torch.nn.functional.one_hot(index, 5).float())
+    selected.sum().backward()
+    # the gradient is that of the probabilities: d/dlogits of Σ_j p_j s_j, with s_j = sum of chunk j
+    probs = logits.detach().softmax(-1)
+    s = chunks.sum((1, 2))
+    expected = probs * (s[None] - (probs * s[None]).sum(-1, keepdim=True))
+    assert torch.allclose(logits.grad, expected, atol=1e-5)
+
+
+def test_reinforce_sign_and_baseline():
+    logits = torch.zeros(2, 3, requires_grad=True)
+    index = torch.tensor([0, 2])
+    advantage = torch.tensor([1.0, -1.0])
+    loss = rd.reinforce_loss(logits, index, advantage, standardize=False)
+    # loss = -mean(A log q) with q = 1/3: -(1*log(1/3) - 1*log(1/3))/2 = 0
+    assert loss.item() == pytest.approx(0.0, abs=1e-6)
+    loss.backward()
+    # a gradient step (logits -= grad) raises q of the pick with A>0 and lowers q of the pick with A<0
+    stepped = (logits - logits.grad).softmax(-1)
+    assert stepped[0, 0] > 1 / 3 and stepped[1, 2] < 1 / 3
+    # hand value: row 0 picks 0 with A=2: -(2 * log(1/3)) / 2 (row 1 has A=0)
+    loss = rd.reinforce_loss(torch.zeros(2, 3), index, torch.tensor([2.0, 0.0]), standardize=False)
+    assert loss.item() == pytest.approx(np.log(3.0))
+
+
+def test_rbrama_subtracts_the_predicted_reward_of_x(monkeypatch):
+    args = rd.Args(obs_type="state", method="rbrama", address_standardize=False, **SMALL)
+    agent = rd.Agent((3,), 2, args)
+    addressing = rd.Addressing((3,), 2, args, "cpu")
+    rng = np.random.default_rng(0)
+    replay = rd.synthetic_replay((3,), 2, 2, 20, rng)
+    x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
+    rewards = {id(x["obs"]): torch.tensor([1.0, 2.0, 3.0, 4.0]), id(m["obs"]): torch.arange(6.0) * 10}
+    monkeypatch.setattr(rd, "predicted_reward_sum", lambda wm, batch: rewards[id(batch["obs"])])
+    seen = {}
+    real = rd.reinforce_loss
+
+    def spy(logits, index, advantage, standardize):
+        seen["index"], seen["advantage"] = index, advantage
+        return real(logits, index, advantage, standardize)
+
+    monkeypatch.setattr(rd, "reinforce_loss", spy)
+    addressing.train(agent, x, m, args)
+    expected = torch.arange(6.0)[seen["index"]] * 10 - torch.tensor([1.0, 2.0, 3.0, 4.0])  # Eq. 3
+    assert torch.allclose(seen["advantage"], expected)
+
+
+def test_stop_grad_on_fx():
+    emb_x = torch.randn(2, 4, requires_grad=True)
+    emb_m = torch.randn(3, 4, requires_grad=True)
+    rd.address_logits(emb_x, emb_m, stop_grad_x=True).sum().backward()
+    assert emb_x.grad is None and emb_m.grad is not None and emb_m.grad.abs().sum() > 0
+    emb_x.grad = None
+    rd.address_logits(emb_x, emb_m, stop_grad_x=False).sum().backward()
+    assert emb_x.grad.abs().sum() > 0
+    # default: on for the REINFORCE variants, off for VRAMa
+    assert rd.Addressing((3,), 2, rd.Args(method="rrama", **SMALL), "cpu").stop_grad_x
+    assert not rd.Addressing((3,), 2, rd.Args(method="vrama", **SMALL), "cpu").stop_grad_x
+
+
+def test_vrama_gradient_reaches_phi_only():
+    args = rd.Args(obs_type="state", method="vrama", **SMALL)
+    agent = rd.Agent((3,), 2, args)
+    addressing = rd.Addressing((3,), 2, args, "cpu")
+    rng = np.random.default_rng(0)
+    replay = rd.synthetic_replay((3,), 2, 2, 20, rng)
+    x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
+    agent_before = {k: v.clone() for k, v in agent.state_dict().items()}
+    phi_before = {k: v.clone() for k, v in addressing.net.state_dict().items()}
+    metrics = addressing.train(agent, x, m, args)
+    assert metrics["addressing/grad_norm"] > 0
+    assert all(torch.equal(v, agent_before[k]) for k, v in agent.state_dict().items())
+    assert any(not torch.equal(v, phi_before[k]) for k, v in addressing.net.state_dict().items())
+    assert all(p.grad is None for p in agent.parameters())
+
+
+def test_reward_mask_zeroes_masked_chunks():
+    args = rd.Args(obs_type="state", **SMALL)
+    wm = rd.Agent((3,), 2, args).wm
+    rng = np.random.default_rng(0)
+    batch = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(4, 5, rng), "cpu")
+    mask = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    torch.manual_seed(0)
+    _, _, full = rd.world_model_loss(wm, batch, 3.0, 1.0, reward_mask=mask)
+    # changing the rewards of the masked chunks changes nothing; changing a kept chunk's does
+    changed = {**batch, "reward": batch["reward"].clone()}
+    changed["reward"][2:] += 100.0
+    torch.manual_seed(0)
+    _, _, same = rd.world_model_loss(wm, changed, 3.0, 1.0, reward_mask=mask)
+    assert same["losses/reward_loglik"].item() == pytest.approx(full["losses/reward_loglik"].item())
+    changed["reward"][0] += 100.0
+    torch.manual_seed(0)
+    _, _, other = rd.world_model_loss(wm, changed, 3.0, 1.0, reward_mask=mask)
+    assert other["losses/reward_loglik"].item() < full["losses/reward_loglik"].item() - 1.0
+    # the masked mean equals the plain mean over the kept chunks
+    loglik = rd.gaussian_loglik(torch.zeros(4, 5), batch["reward"], 0)
+    assert rd.masked_mean(loglik, mask).item() == pytest.approx(loglik[:2].mean().item())
+
+
+def test_batch_merge_keeps_beta_n_current_chunks():
+    rng = np.random.default_rng(0)
+    current, multitask = rd.Replay(), rd.Replay()
+    for i in range(2):
+        ep = {"obs": np.zeros((21, 3), np.float32), "action": np.zeros((21, 2), np.float32),
+              "reward": np.zeros(21, np.float32), "terminal": np.zeros(21, bool), "task": "now"}
+        current.add(ep)
+        multitask.add({**ep, "obs": np.ones((21, 3), np.float32), "task": "before"})
+    args = rd.Args(obs_type="state", method="uniform", address_prob=1.0, current_fraction=0.25,
+                   **{**SMALL, "batch_size": 8})
+    agent = rd.Agent((3,), 2, args)
+    seen = {}
+    real = rd.train_step
+
+    def spy(agent, batch, args, reward_mask=None, model_mask=None):
+        seen.update(batch=batch, reward_mask=reward_mask, model_mask=model_mask)
+        return real(agent, batch, args, reward_mask, model_mask)
+
+    rd.train_step = spy
+    try:
+        rd.update(agent, current, multitask, None, args, rng, "cpu", "now", 0)
+        obs = seen["batch"]["obs"]
+        assert obs.shape[0] == 8
+        assert torch.all(obs[:2] == 0) and torch.all(obs[2:] == 1)  # β·n = 2 current rows, then 6 borrowed
+        assert seen["reward_mask"].tolist() == [1.0] * 2 + [0.0] * 6  # other task's rewards are masked
+        assert seen["model_mask"] is None
+        args = rd.Args(**{**vars(args), "wm_on_addressed": False})
+        rd.update(agent, current, multitask, None, args, rng, "cpu", "now", 0)
+        assert seen["model_mask"].tolist() == [1.0] * 2 + [0.0] * 6
+        args = rd.Args(**{**vars(args), "address_prob": 0.0})
+        rd.update(agent, current, multitask, None, args, rng, "cpu", "now", 0)
+        assert torch.all(seen["batch"]["obs"] == 0) and seen["reward_mask"] is None
+    finally:
+        rd.train_step = real
+
+
+def _write_episodes(folder, n, obs_shape=(24,), action_size=6, task="walker-stand", returns=None):
+    os.makedirs(folder, exist_ok=True)
+    for i in range(n):
+        reward = np.zeros(11, np.float32)
+        reward[1] = returns[i] if returns else i
+        ep = {"obs": np.zeros((11, *obs_shape), np.float32), "action": np.zeros((11, action_size), np.float32),
+              "reward": reward, "terminal": np.zeros(11, bool), "task": np.asarray(task),
+              "return": np.asarray(reward.sum())}
+        rd.save_episode(folder, i, ep)
+
+
+def test_prior_loading_filters_subsamples_and_refuses_bad_folders(tmp_path):
+    _write_episodes(tmp_path / "run" / "episodes", 10)
+    rng = np.random.default_rng(0)
+    eps = rd.load_prior_episodes([str(tmp_path / "run")], 5.0, 3, (24,), 6, rng)
+    assert len(eps) == 3 and all(float(e["reward"].sum()) >= 5 for e in eps)
+    assert len(rd.load_prior_episodes([str(tmp_path / "run")], None, 1000, (24,), 6, rng)) == 10
+    with pytest.raises(rd.UsageError, match="no such folder"):
+        rd.load_prior_episodes([str(tmp_path / "missing")], None, 10, (24,), 6, rng)
+    os.makedirs(tmp_path / "empty")
+    with pytest.raises(rd.UsageError, match="empty.*no episode files"):
+        rd.load_prior_episodes([str(tmp_path / "empty")], None, 10, (24,), 6, rng)
+    with pytest.raises(rd.UsageError, match=r"000000-10\.npz.*do not match"):
+        rd.load_prior_episodes([str(tmp_path / "run")], None, 10, (64, 64, 3), 6, rng)
+    with pytest.raises(rd.UsageError, match="--prior-min-return"):
+        rd.load_prior_episodes([str(tmp_path / "run")], 1e9, 10, (24,), 6, rng)
+
+
+TINY = ["--total-steps", "300", "--time-limit", "100", "--batch-size", "4", "--seq-len", "8",
+        "--updates-per-episode", "2", "--cnn-depth", "4", "--deter-size", "16", "--stoch-size", "4",
+        "--hidden-size", "16", "--mlp-units", "16", "--horizon", "3", "--eval-every", "200", "--device", "cpu",
+        "--address-units", "16", "--address-cnn-depth", "4", "--address-batch", "5", "--address-plot-every", "2",
+        "--address-prob", "1.0"]
+
+
+def run(*flags, check=True):
+    proc = subprocess.run([sys.executable, SCRIPT, *flags], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    if check:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def metric_keys(run_path):
+    with open(os.path.join(run_path, "metrics.jsonl")) as f:
+        return set().union(*(json.loads(line) for line in f))
+
+
+@pytest.fixture(scope="module")
+def prior_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("prior")
+    run("--env-id", "dmc/walker-stand", "--run-dir", str(root), *TINY)
+    return glob.glob(os.path.join(root, "*"))[0]
+
+
+@pytest.mark.parametrize("method", ["uniform", "vrama", "rrama", "rbrama"])
+def test_every_method_runs_with_prior_dirs(tmp_path, prior_run, method):
+    run("--env-id", "dmc/walker-walk", "--method", method, "--prior-dirs", prior_run, "--run-dir", str(tmp_path),
+        *TINY, "--prior-min-return", "0")
+    run_path = glob.glob(os.path.join(tmp_path, "*"))[0]
+    keys = metric_keys(run_path)
+    assert {"addressing/pick_fraction/walker-stand", "addressing/picked_return", "losses/world_model"} <= keys
+    if method != "uniform":
+        assert {"addressing/loss", "addressing/entropy", "addressing/refresh_seconds"} <= keys
+        assert glob.glob(os.path.join(run_path, "addressing", "q_*.png"))
+
+
+@pytest.mark.parametrize("method", ["vrama", "rrama"])
+def test_methods_run_without_prior_dirs(tmp_path, method):
+    # the first task of a sequence: M holds only the current task's own experience
+    run("--env-id", "dmc/walker-stand", "--method", method, "--run-dir", str(tmp_path), *TINY)
+    keys = metric_keys(glob.glob(os.path.join(tmp_path, "*"))[0])
+    assert "addressing/pick_fraction/walker-stand" in keys and "addressing/loss" in keys
+
+
+def test_two_task_sequence(tmp_path):
+    run("--task-sequence", "walker-stand,walker-walk", "--method", "rrama", "--run-dir", str(tmp_path), *TINY,
+        "--obs-type", "state")
+    run_path = glob.glob(os.path.join(tmp_path, "*"))[0]
+    assert os.path.exists(os.path.join(run_path, "address.pt"))
+    first, second = os.path.join(run_path, "0_walker-stand"), os.path.join(run_path, "1_walker-walk")
+    assert len(rd.list_episode_files(os.path.join(first, "episodes"))) == 3
+    assert len(rd.list_episode_files(os.path.join(second, "episodes"))) == 3
+    # the second task addresses the first task's episodes (M carried over)
+    assert "addressing/pick_fraction/walker-stand" in metric_keys(second)
+
+
+def test_bad_prior_dirs_are_one_line_errors(tmp_path):
+    proc = run("--method", "rrama", "--prior-dirs", str(tmp_path / "nope"), "--run-dir", str(tmp_path), *TINY,
+               check=False)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "--prior-dirs" in lines[0], proc.stderr
+    proc = run("--method", "dreamer", "--prior-dirs", str(tmp_path), *TINY, check=False)
+    assert proc.returncode == 2 and "--prior-dirs" in proc.stderr
