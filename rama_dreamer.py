@@ -56,7 +56,7 @@ class Args:
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (part of the run folder's name)"""
     env_id: str = "dmc/walker-walk"
-    """the environment: `dmc/<domain>-<task>` (any DeepMind Control suite task)"""
+    """the environment: `dmc/<domain>-<task>` (any DeepMind Control suite task) or `kitchen/bluebox|bluecone`"""
     method: Literal["dreamer", "uniform", "vrama", "rrama", "rbrama"] = "dreamer"
     """`dreamer` (no prior data), `uniform` (prior chunks mixed in uniformly: the paper's "No addressing"),
     `vrama` (Eq. 1), `rrama` (Eq. 2), `rbrama` (Eq. 3)"""
@@ -93,12 +93,14 @@ class Args:
     # Environment
     action_repeat: int = 2
     """each action is repeated this many environment steps"""
-    time_limit: int = 1000
-    """environment steps per episode"""
+    time_limit: Optional[int] = None
+    """environment steps per episode; None = 1000 for DMC, 500 for the kitchen"""
     image_size: int = 64
     """rendered image height and width"""
     camera: int = -1
     """camera id; -1 = the suite default used by Dreamer (0, or 2 for quadruped)"""
+    kitchen_joints: Literal[3, 7] = 3
+    """active joints of the kitchen robot (3: pan, lift, elbow, the paper's setting; or all 7)"""
 
     # World model
     deter_size: int = 200
@@ -125,8 +127,8 @@ class Args:
     """Adam learning rate of the actor"""
     value_lr: float = 8e-5
     """Adam learning rate of the value"""
-    horizon: int = 15
-    """imagination horizon"""
+    horizon: Optional[int] = None
+    """imagination horizon; None = 15, or 25 for the kitchen (the paper's settings)"""
     gamma: float = 0.99
     """discount"""
     return_lambda: float = 0.95
@@ -185,6 +187,13 @@ class Args:
     """draw the addressing-probabilities picture every this many episodes"""
 
 
+def resolve_defaults(args: Args) -> Args:
+    """Fill the defaults that depend on the environment (right after parsing; saved resolved in args.json)."""
+    kitchen = args.env_id.startswith("kitchen/")
+    return dataclasses.replace(args, horizon=args.horizon or (25 if kitchen else 15),
+                               time_limit=args.time_limit or (500 if kitchen else 1000))
+
+
 def check_args(args: Args) -> None:
     """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
     positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
@@ -227,14 +236,19 @@ class UsageError(Exception):
 # ----------------------------------------------------------------------------------------------------------
 # 3. Environment: DeepMind Control from pixels
 # ----------------------------------------------------------------------------------------------------------
+KITCHEN_TASKS = ("bluebox", "bluecone")
+
+
 def make_env_spec(env_id: str) -> dict:
-    """Parse `dmc/<domain>-<task>` into its parts; refuse unknown ids."""
+    """Parse `dmc/<domain>-<task>` or `kitchen/<task>` into its parts; refuse unknown ids."""
     from dm_control import suite
 
     suite_name, _, name = env_id.partition("/")
+    if suite_name == "kitchen" and name in KITCHEN_TASKS:
+        return {"suite": suite_name, "task": name, "name": name}
     domain, _, task = name.partition("-")
     if suite_name != "dmc" or (domain, task) not in suite.ALL_TASKS:
-        known = ", ".join(f"dmc/{d}-{t}" for d, t in suite.ALL_TASKS[:4])
+        known = ", ".join([f"dmc/{d}-{t}" for d, t in suite.ALL_TASKS[:3]] + [f"kitchen/{t}" for t in KITCHEN_TASKS])
         raise UsageError(f"--env-id/--task-sequence: {env_id!r} is not a known environment (e.g. {known}, ...)")
     return {"suite": suite_name, "domain": domain, "task": task, "name": name}
 
@@ -297,7 +311,42 @@ class DMCEnv:
         self._env.physics.free()  # dm_control's env.close() frees nothing
 
 
+class KitchenEnvAdapter:
+    """The robot kitchen of kitchen_env.py (96x64 RGB) behind the same interface as DMCEnv, with action repeat."""
+
+    def __init__(self, task, seed, obs_type="pixels", action_repeat=2, time_limit=500, active_joints=3):
+        from kitchen_env import KitchenEnv
+
+        self.task_name = task
+        self._env = KitchenEnv(task, active_joints=active_joints, obs_type=obs_type, max_steps=time_limit)
+        self._env.reset(seed=seed)  # seeds the env's generator; later resets reseed per episode
+        self._repeat = action_repeat
+        self.action_size = int(self._env.action_space.shape[0])
+        self.obs_shape = tuple(self._env.observation_space.shape)
+
+    def render(self):
+        return self._env.render()
+
+    def reset(self, seed=None):
+        return self._env.reset(seed=seed)[0]
+
+    def step(self, action):
+        reward = 0.0
+        for _ in range(self._repeat):
+            obs, r, terminated, truncated, _ = self._env.step(action)
+            reward += r
+            if terminated or truncated:
+                break
+        return obs, reward, terminated, truncated
+
+    def close(self):
+        self._env.close()
+
+
 def make_env(args: Args, env_id: str, seed: int):
+    if env_id.startswith("kitchen/"):
+        return KitchenEnvAdapter(env_id.split("/")[1], seed, args.obs_type, args.action_repeat, args.time_limit,
+                                 args.kitchen_joints)
     return DMCEnv(env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit, args.camera)
 
 
@@ -1361,6 +1410,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
 
 
 def main(args: Args):
+    args = resolve_defaults(args)
     check_args(args)
     if args.benchmark:
         return benchmark(args)

@@ -1,0 +1,156 @@
+"""Few-step end-to-end runs of rama_dreamer.py in a subprocess, with tiny sizes."""
+import glob
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCRIPT = os.path.join(ROOT, "rama_dreamer.py")
+# tiny sizes: 50-step episodes (100 env steps with action repeat 2), 4 episodes, 2 updates each
+TINY = ["--total-steps", "400", "--time-limit", "100", "--batch-size", "3", "--seq-len", "8",
+        "--updates-per-episode", "2", "--cnn-depth", "4", "--deter-size", "16", "--stoch-size", "4",
+        "--hidden-size", "16", "--mlp-units", "16", "--horizon", "3", "--eval-every", "200", "--device", "cpu"]
+
+
+def run(*flags, timeout=300, check=True):
+    proc = subprocess.run([sys.executable, SCRIPT, *flags], capture_output=True, text=True, timeout=timeout,
+                          cwd=ROOT, env={**os.environ, "MUJOCO_GL": "egl"})
+    if check:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def only_run(run_dir):
+    runs = glob.glob(os.path.join(run_dir, "*"))
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+def read_metrics(run_path):
+    with open(os.path.join(run_path, "metrics.jsonl")) as f:
+        return [json.loads(line) for line in f]
+
+
+@pytest.mark.parametrize("obs_type", ["pixels", "state"])
+def test_tiny_run_writes_a_complete_run_folder(tmp_path, obs_type):
+    flags = ["--env-id", "dmc/walker-walk", "--obs-type", obs_type, "--run-dir", str(tmp_path), *TINY]
+    run(*flags, *(["--capture-video"] if obs_type == "pixels" else []))
+    run_path = only_run(tmp_path)
+    assert os.path.basename(run_path).startswith("dmc_walker-walk__rama_dreamer__dreamer__1__")
+    with open(os.path.join(run_path, "args.json")) as f:
+        assert json.load(f)["obs_type"] == obs_type
+    names = sorted(os.path.basename(p) for p in glob.glob(os.path.join(run_path, "episodes", "*")))
+    assert names == [f"{i:06d}-50.npz" for i in range(4)]
+    with np.load(os.path.join(run_path, "episodes", names[0])) as ep:
+        obs_shape = (51, 64, 64, 3) if obs_type == "pixels" else (51, 24)
+        assert ep["obs"].shape == obs_shape and ep["action"].shape == (51, 6) and ep["reward"].shape == (51,)
+        assert ep["obs"].dtype == (np.uint8 if obs_type == "pixels" else np.float32)
+        assert str(ep["task"]) == "walker-walk"
+        assert float(ep["return"]) == pytest.approx(float(ep["reward"].sum()), rel=1e-5)
+    assert os.path.exists(os.path.join(run_path, "checkpoint.pt"))
+    assert glob.glob(os.path.join(run_path, "events.out.tfevents.*"))
+    keys = set().union(*read_metrics(run_path))
+    for key in ["charts/episodic_return", "charts/SPS", "losses/world_model", "losses/kl", "losses/actor",
+                "losses/value", "eval/episodic_return"]:
+        assert key in keys, key
+    assert all(np.isfinite(v) for row in read_metrics(run_path) for v in row.values())
+    if obs_type == "pixels":
+        videos = os.listdir(os.path.join(run_path, "videos"))
+        assert any(v.startswith("eval_") for v in videos) and any(v.startswith("openloop_") for v in videos)
+
+
+def _comparable(run_path):
+    # wall-clock metrics differ between any two runs; everything learned or collected must not
+    return [{k: v for k, v in row.items() if not k.startswith("time/") and k != "charts/SPS"}
+            for row in read_metrics(run_path)]
+
+
+def test_same_seed_same_run_different_seed_different_run(tmp_path):
+    flags = ["--env-id", "dmc/cartpole-swingup", "--obs-type", "state", *TINY, "--total-steps", "300"]
+    for name, seed in [("a", 3), ("b", 3), ("c", 4)]:
+        run(*flags, "--seed", str(seed), "--run-dir", str(tmp_path / name))
+    a, b, c = (_comparable(only_run(tmp_path / name)) for name in "abc")
+    assert a == b
+    assert a != c
+
+
+def test_resume_after_sigkill(tmp_path):
+    flags = ["--env-id", "dmc/cartpole-balance", "--obs-type", "state", "--run-dir", str(tmp_path), *TINY,
+             "--total-steps", "100000"]
+    proc = subprocess.Popen([sys.executable, SCRIPT, *flags], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline:
+            runs = glob.glob(os.path.join(tmp_path, "*"))
+            if runs and len(glob.glob(os.path.join(runs[0], "episodes", "*.npz"))) >= 3 \
+                    and os.path.exists(os.path.join(runs[0], "checkpoint.pt")):
+                break
+            time.sleep(0.2)
+        else:
+            pytest.fail("the run did not write 3 episodes in time")
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    run_path = only_run(tmp_path)
+    kept = len(glob.glob(os.path.join(run_path, "episodes", "*.npz")))
+    assert kept >= 3
+    # every file left behind is a complete episode
+    for path in glob.glob(os.path.join(run_path, "episodes", "*.npz")):
+        with np.load(path) as ep:
+            assert ep["reward"].shape == (51,)
+    # resume with a total that is 3 episodes further: it continues the step count from the episode folder
+    target = (kept + 3) * 100
+    with open(os.path.join(run_path, "args.json")) as f:
+        saved = json.load(f)
+    saved["total_steps"] = target
+    with open(os.path.join(run_path, "args.json"), "w") as f:
+        json.dump(saved, f)
+    proc = run("--resume", run_path)
+    assert f"{kept} episodes on disk ({kept * 100} steps)" in proc.stdout
+    names = sorted(os.path.basename(p) for p in glob.glob(os.path.join(run_path, "episodes", "*.npz")))
+    assert names == [f"{i:06d}-50.npz" for i in range(kept + 3)]
+    steps = [row["step"] for row in read_metrics(run_path) if "charts/episodic_return" in row]
+    assert steps[-1] == target and steps == sorted(steps)
+
+
+@pytest.mark.parametrize("flags, flag_named", [
+    (["--batch-size", "0"], "--batch-size"),
+    (["--seq-len", "-3"], "--seq-len"),
+    (["--env-id", "dmc/walker-fly"], "--env-id"),
+    (["--env-id", "atari/pong"], "--env-id"),
+    (["--device", "cuda:7"] if not os.path.exists("/dev/nvidia0") else ["--device", "tpu"], "--device"),
+    (["--resume", "/nonexistent/run"], "--resume"),
+])
+def test_bad_input_is_one_line_naming_the_flag(tmp_path, flags, flag_named):
+    proc = run("--run-dir", str(tmp_path), *flags, check=False, timeout=60)
+    assert proc.returncode != 0
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and flag_named in lines[0], proc.stderr
+    assert not os.listdir(tmp_path)  # nothing written for a refused run
+
+
+def test_unwritable_run_dir(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    proc = run("--run-dir", str(blocker / "runs"), *TINY, check=False, timeout=60)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode != 0 and len(lines) == 1 and "--run-dir" in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("task", ["bluebox", "bluecone"])
+def test_tiny_run_on_the_kitchen(tmp_path, task):
+    run("--env-id", f"kitchen/{task}", "--run-dir", str(tmp_path), *TINY, "--total-steps", "200")
+    run_path = only_run(tmp_path)
+    with open(os.path.join(run_path, "args.json")) as f:
+        assert json.load(f)["horizon"] == 25  # the paper's horizon for this domain
+    path = sorted(glob.glob(os.path.join(run_path, "episodes", "*.npz")))[0]
+    with np.load(path) as ep:
+        assert ep["obs"].shape == (51, 64, 96, 3) and ep["action"].shape == (51, 3) and str(ep["task"]) == task
+    assert "losses/world_model" in set().union(*read_metrics(run_path))
