@@ -89,6 +89,8 @@ class Args:
     """print seconds per update at the paper's size and a small size (CPU, and CUDA when present), then exit"""
     benchmark_updates: int = 3
     """timed updates per benchmark setting (after one warm-up update)"""
+    benchmark_methods: Tuple[str, ...] = ("dreamer", "uniform", "rrama", "vrama", "rbrama")
+    """methods the benchmark times"""
 
     # Environment
     action_repeat: int = 2
@@ -227,6 +229,9 @@ def task_list(args: Args) -> list:
         return [args.env_id]
     suite_name = args.env_id.split("/")[0]
     return [t if "/" in t else f"{suite_name}/{t}" for t in args.task_sequence.split(",") if t.strip()]
+
+
+ADDRESSED_METHODS = ("vrama", "rrama", "rbrama")
 
 
 class UsageError(Exception):
@@ -1143,7 +1148,7 @@ def seed_everything(seed: int):
     torch.manual_seed(seed)
 
 
-def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng) -> Replay:
+def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, task: str = "synthetic") -> Replay:
     """Random episodes for the benchmark: no environment needed."""
     replay = Replay()
     for _ in range(episodes):
@@ -1151,39 +1156,53 @@ def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng) ->
         obs = rng.integers(0, 256, shape, dtype=np.uint8) if len(obs_shape) == 3 else rng.normal(size=shape)
         replay.add({"obs": obs, "action": rng.uniform(-1, 1, (length + 1, action_size)).astype(np.float32),
                     "reward": rng.uniform(0, 1, length + 1).astype(np.float32),
-                    "terminal": np.zeros(length + 1, bool), "task": "synthetic"})
+                    "terminal": np.zeros(length + 1, bool), "task": task})
     return replay
 
 
 def benchmark(args: Args):
-    """Seconds per full update (world model + actor + value) at the paper's size and a small size."""
+    """Seconds per full update (Algorithm 2: addressing + world model + actor + value) per method, at the paper's
+    size and a small size, on CPU and on CUDA when present. Synthetic episodes: no environment in the timing."""
+    unknown = set(args.benchmark_methods) - {"dreamer", "uniform", *ADDRESSED_METHODS}
+    if unknown:
+        raise UsageError(f"--benchmark-methods: unknown {sorted(unknown)}")
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     print(f"machine: {platform.machine()} {platform.processor() or ''} | {os.cpu_count()} CPUs | torch "
           f"{torch.__version__} | threads {torch.get_num_threads()}"
-          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""))
+          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""), flush=True)
     obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else (24,)
     rng = np.random.default_rng(args.seed)
-    replay = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng)
-    print(f"{'device':<6} {'size':<6} {'batch':>5} {'len':>4} {'s/update':>9} {'world model':>12} {'actor-critic':>13}")
+    replay = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng, task="current")
+    multitask = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng, task="prior")
+    for episode in replay.episodes:
+        multitask.add(episode)
+    parts = ["world_model", "actor_critic", "addressing", "batch_sampling"]
+    print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "
+          + " ".join(f"{p:>14}" for p in parts), flush=True)
     for device_name in devices:
         device = torch.device(device_name)
         for size, (n, length) in {"paper": (50, 50), "small": (16, 50)}.items():
-            run_args = dataclasses.replace(args, batch_size=n, seq_len=length)
-            agent = Agent(obs_shape, 6, run_args).to(device)
-            totals = {"world_model": 0.0, "actor_critic": 0.0}
-            for i in range(args.benchmark_updates + 1):
-                batch = to_torch(replay.sample(n, length, rng), device)
-                if device.type == "cuda":
-                    torch.cuda.synchronize()
-                out = train_step(agent, batch, run_args)
-                if device.type == "cuda":
-                    torch.cuda.synchronize()
-                if i > 0:  # the first update warms up allocators and kernels
-                    for k in totals:
-                        totals[k] += out["timings"][k] / args.benchmark_updates
-            total = sum(totals.values())
-            print(f"{device_name:<6} {size:<6} {n:>5} {length:>4} {total:>9.3f} {totals['world_model']:>12.3f} "
-                  f"{totals['actor_critic']:>13.3f}", flush=True)
+            reference = None
+            for method in args.benchmark_methods:
+                run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method)
+                agent = Agent(obs_shape, 6, run_args).to(device)
+                addressing = Addressing(obs_shape, 6, run_args, device) if method in ADDRESSED_METHODS else None
+                totals = dict.fromkeys(parts + ["total"], 0.0)
+                for i in range(args.benchmark_updates + 1):  # update 0 warms up (and refreshes D, once per C)
+                    if device.type == "cuda":
+                        torch.cuda.synchronize()
+                    t0 = time.perf_counter()
+                    out = update(agent, replay, multitask, addressing, run_args, rng, device, "current", i)
+                    if device.type == "cuda":
+                        torch.cuda.synchronize()
+                    if i > 0:
+                        totals["total"] += (time.perf_counter() - t0) / args.benchmark_updates
+                        for k in parts:
+                            totals[k] += out["timings"].get(k, 0.0) / args.benchmark_updates
+                reference = reference or totals["total"]
+                print(f"{device_name:<6} {size:<6} {n:>3} {length:>3} {method:<8} {totals['total']:>9.3f} "
+                      f"{totals['total'] / reference:>9.2f}x " + " ".join(f"{totals[p]:>14.3f}" for p in parts),
+                      flush=True)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1434,7 +1453,7 @@ def main(args: Args):
               f"{multitask.memory_bytes() / 2**30:.2f} GiB in memory", flush=True)
     addressing = None
     address_path = os.path.join(run_path, "address.pt")
-    if args.method in ("vrama", "rrama", "rbrama"):
+    if args.method in ADDRESSED_METHODS:
         addressing = Addressing(obs_shape, action_size, args, device)
         if os.path.exists(address_path):
             saved = torch.load(address_path, map_location=device)

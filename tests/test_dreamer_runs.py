@@ -155,3 +155,15 @@ def test_tiny_run_on_the_kitchen(tmp_path, task):
     with np.load(path) as ep:
         assert ep["obs"].shape == (51, 64, 96, 3) and ep["action"].shape == (51, 3) and str(ep["task"]) == task
     assert "losses/world_model" in set().union(*read_metrics(run_path))
+
+
+def test_benchmark_command_prints_every_method():
+    proc = run("--benchmark", "--obs-type", "state", "--benchmark-updates", "1", "--deter-size", "8",
+               "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8",
+               "--horizon", "3", "--benchmark-methods", "dreamer", "uniform", "rrama", "vrama", "rbrama")
+    assert proc.stdout.startswith("machine: ")
+    rows = [line.split() for line in proc.stdout.splitlines()[2:]]
+    assert [(r[0], r[1], r[4]) for r in rows] == [(d, size, m) for d in ["cpu"] + (["cuda"] if len(rows) > 10 else [])
+                                                  for size in ("paper", "small")
+                                                  for m in ("dreamer", "uniform", "rrama", "vrama", "rbrama")]
+    assert all(float(r[5]) > 0 for r in rows)
