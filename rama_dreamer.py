@@ -678,6 +678,7 @@ class Actor(nn.Module):
     def __init__(self, feat_size, action_size, units, init_std=5.0, min_std=1e-4, mean_scale=5.0):
         super().__init__()
         self.net = mlp(feat_size, units, 4, 2 * action_size)
+        self.action_size = action_size
         self.init_std, self.min_std, self.mean_scale = init_std, min_std, mean_scale
 
     def forward(self, feat):
@@ -1016,7 +1017,7 @@ class Policy:
         self.agent, self.device = agent, device
 
     def reset(self):
-        self.state, self.action = None, torch.zeros(1, self.agent.actor.net[-1].out_features // 2, device=self.device)
+        self.state, self.action = None, torch.zeros(1, self.agent.actor.action_size, device=self.device)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, explore_noise: Optional[float], rng: np.random.Generator) -> np.ndarray:
