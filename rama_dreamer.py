@@ -1,22 +1,25 @@
-"""RAMa with Dreamer on DeepMind Control from pixels: one file, read top to bottom.
+"""RAMa with Dreamer on DeepMind Control and the robot kitchen, from pixels: one file, read top to bottom.
 
-Paper: Zholus & Panov, "Multitask Adaptation by Retrospective Exploration with Learned World Models"
-(RAMa: Retrospective Addressing for Multitask Adaptation). This file holds the Dreamer (v1) agent that RAMa
-builds on: an RSSM world model learned from pixels, an actor and a value trained in latent imagination.
+Paper: Zholus & Panov, "Multitask Adaptation by Retrospective Exploration with Learned World Models".
+A Dreamer (v1) agent (RSSM world model, actor and value trained in latent imagination) learns a new task while a
+meta-learned addressing model f_φ picks chunks of earlier tasks' episodes from a multitask buffer M and mixes them
+into the agent's batches (RAMa: Retrospective Addressing for Multitask Adaptation; Algorithms 1-2, Eqs. 1-3).
 
 Contents (each section sits under a `# ----` banner):
-    1. imports              2. Args (every knob a flag)       3. environment (DeepMind Control)
-    4. episode storage and replay                             5. networks (encoder, decoder, RSSM, heads)
-    6. losses and imagination (λ-returns, KL with free nats)  7. logging, checkpoints, benchmark
-    8. the training loop (`if __name__ == "__main__":`)
+    1. imports              2. Args (every knob a flag)       3. environments (DeepMind Control, kitchen)
+    4. episode storage, replay and the multitask buffer       5. networks (encoder, decoder, RSSM, heads, f_φ)
+    6. losses: λ-returns, KL with free nats, the Dreamer update, the addressing objectives (Eqs. 1-3)
+    7. acting, logging, checkpoints, benchmark                8. the training loop (Algorithms 1 and 2)
 
 Run:
-    python rama_dreamer.py --env-id dmc/walker-walk                       # paper defaults (a GPU job)
+    python rama_dreamer.py --env-id dmc/walker-walk                       # Dreamer, paper defaults (a GPU job)
+    python rama_dreamer.py --env-id dmc/walker-walk --method rrama --prior-dirs runs/<a walker run>
+    python rama_dreamer.py --method vrama --task-sequence walker-stand,walker-walk,walker-run   # Algorithm 1
     python rama_dreamer.py --env-id dmc/cartpole-balance --obs-type state # cheap CPU study
     python rama_dreamer.py --env-id dmc/walker-walk --total-steps 400 --time-limit 100 --batch-size 4 \
         --seq-len 8 --updates-per-episode 2 --cnn-depth 4 --deter-size 16 --stoch-size 4 --hidden-size 16 \
         --mlp-units 16 --horizon 3                                         # tiny smoke run (seconds)
-    python rama_dreamer.py --benchmark                                    # seconds per update, paper + small size
+    python rama_dreamer.py --benchmark                                    # seconds per update, every method
     python rama_dreamer.py --resume runs/<run>                            # continue a killed run
 """
 
