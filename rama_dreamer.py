@@ -303,7 +303,7 @@ class DMCEnv:
         return self._observe(self._env.reset())
 
     def step(self, action):
-        """Returns (obs, reward, terminated, truncated); DMC tasks never terminate, they time out."""
+        """Returns (obs, reward, terminated, truncated, info); DMC tasks never terminate, they time out."""
         reward = 0.0
         for _ in range(self._repeat):
             time_step = self._env.step(action)
@@ -312,7 +312,11 @@ class DMCEnv:
                 break
         self._steps += 1
         truncated = time_step.last() or self._steps >= self._max_agent_steps
-        return self._observe(time_step), reward, False, truncated
+        return self._observe(time_step), reward, False, truncated, {}
+
+    def extras(self) -> dict:
+        """What an episode file stores besides the trajectory (for analysis only, never an input)."""
+        return {}
 
     def close(self):
         self._renderer.close()
@@ -339,13 +343,16 @@ class KitchenEnvAdapter:
         return self._env.reset(seed=seed)[0]
 
     def step(self, action):
-        reward = 0.0
+        reward, success = 0.0, False
         for _ in range(self._repeat):
-            obs, r, terminated, truncated, _ = self._env.step(action)
-            reward += r
+            obs, r, terminated, truncated, info = self._env.step(action)
+            reward, success = reward + r, success or info["success"]
             if terminated or truncated:
                 break
-        return obs, reward, terminated, truncated
+        return obs, reward, terminated, truncated, {"success": success}
+
+    def extras(self) -> dict:
+        return {}
 
     def close(self):
         self._env.close()
@@ -1046,19 +1053,32 @@ def run_episode(env, act, seed: int, task: str, record: bool = False):
     obs = env.reset(seed=seed)
     episode = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
     frames = [env.render()] if record else []
-    done = False
+    done, success = False, None  # success stays None for envs that do not report it (DMC)
     while not done:
         action = act(obs)
-        obs, reward, terminated, truncated = env.step(action)
+        obs, reward, terminated, truncated, info = env.step(action)
         for key, value in zip(("obs", "action", "reward", "terminal"), (obs, action, reward, terminated)):
             episode[key].append(value)
+        if "success" in info:
+            success = bool(success) or bool(info["success"])  # success at any step counts
         if record:
             frames.append(env.render())
         done = terminated or truncated
     episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None) for k, v in episode.items()}
+    episode.update({k: np.asarray(v) for k, v in env.extras().items()})
     episode["task"] = np.asarray(task)
     episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
+    if success is not None:
+        episode["success"] = np.asarray(success)
     return episode, frames
+
+
+def episode_metrics(prefix: str, episodes: list) -> dict:
+    """Mean return (and success rate, where the env reports success) of finished episodes."""
+    metrics = {f"{prefix}/episodic_return": float(np.mean([float(ep["return"]) for ep in episodes]))}
+    if "success" in episodes[0]:
+        metrics[f"{prefix}/success_rate"] = float(np.mean([bool(ep["success"]) for ep in episodes]))
+    return metrics
 
 
 class Logger:
@@ -1388,17 +1408,18 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
 
             # (b) evaluation without exploration noise, every eval_every environment steps
             if args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes:
-                returns = []
+                episodes = []
                 for i in range(args.eval_episodes):
                     policy.reset()
                     episode, frames = run_episode(eval_env, lambda o: policy.act(o, None, rng),
                                                   seed=seed * 1_000_003 + 7919 * env_steps + i,
                                                   task=env.task_name, record=args.capture_video and i == 0)
-                    returns.append(float(episode["return"]))
+                    episodes.append(episode)
                     if frames:
                         write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
-                logger.log(env_steps, {"eval/episodic_return": np.mean(returns)})
-                progress.write(f"step {env_steps}: eval return {np.mean(returns):.1f}")
+                eval_metrics = episode_metrics("eval", episodes)
+                logger.log(env_steps, eval_metrics)
+                progress.write(f"step {env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
                 sys.stdout.flush()
                 while state["next_eval"] <= env_steps:
                     state["next_eval"] += args.eval_every
@@ -1418,9 +1439,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             env_steps += steps
             progress.update(steps)
             sps = (env_steps - start_steps) / (time.time() - start_time)
-            logger.log(env_steps, {"charts/episodic_return": float(episode["return"]),
-                                   "charts/episodic_length": steps, "charts/SPS": sps,
-                                   "charts/episodes": len(replay)})
+            logger.log(env_steps, {**episode_metrics("charts", [episode]), "charts/episodic_length": steps,
+                                   "charts/SPS": sps, "charts/episodes": len(replay)})
             progress.set_postfix(ret=f"{float(episode['return']):.1f}", sps=f"{sps:.1f}")
             if progress.disable:  # no terminal (nohup, CI): one plain line per episode instead of the bar
                 print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "

@@ -154,7 +154,9 @@ def test_tiny_run_on_the_kitchen(tmp_path, task):
     path = sorted(glob.glob(os.path.join(run_path, "episodes", "*.npz")))[0]
     with np.load(path) as ep:
         assert ep["obs"].shape == (51, 64, 96, 3) and ep["action"].shape == (51, 3) and str(ep["task"]) == task
-    assert "losses/world_model" in set().union(*read_metrics(run_path))
+        assert ep["success"].dtype == bool
+    keys = set().union(*read_metrics(run_path))
+    assert {"losses/world_model", "charts/success_rate", "eval/success_rate"} <= keys
 
 
 def test_benchmark_command_prints_every_method():
