@@ -147,7 +147,7 @@ def test_unwritable_run_dir(tmp_path):
 @pytest.mark.parametrize("task", ["bluebox", "bluecone"])
 def test_tiny_run_on_the_kitchen(tmp_path, task):
     no_horizon = [f for i, f in enumerate(TINY) if "--horizon" not in TINY[max(i - 1, 0):i + 1]]
-    run("--env-id", f"kitchen/{task}", "--run-dir", str(tmp_path), *no_horizon, "--total-steps", "200")
+    run("--env-id", f"kitchen/{task}", "--run-dir", str(tmp_path), *no_horizon, "--total-steps", "300")
     run_path = only_run(tmp_path)
     with open(os.path.join(run_path, "args.json")) as f:
         assert json.load(f)["horizon"] == 25  # the paper's horizon for this domain
