@@ -1053,7 +1053,7 @@ def run_episode(env, act, seed: int, task: str, record: bool = False):
     obs = env.reset(seed=seed)
     episode = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
     frames = [env.render()] if record else []
-    done, success = False, None  # success stays None for envs that do not report it (DMC)
+    done, success = False, None  # success stays None for envs that do not report it
     while not done:
         action = act(obs)
         obs, reward, terminated, truncated, info = env.step(action)

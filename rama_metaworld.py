@@ -1,0 +1,1588 @@
+"""RAMa with Dreamer on Meta-World with parametric task variability, from pixels: one file, read top to bottom.
+
+Paper: Zholus & Panov, "Multitask Adaptation by Retrospective Exploration with Learned World Models" (Table 2).
+A Dreamer (v1) agent (RSSM world model, actor and value trained in latent imagination) learns a Meta-World task
+whose object and goal positions vary: 50 task vectors are drawn at start-up and one is made active at every reset,
+never shown to the agent. Prior experience is collected on a "train" set of vectors; the adaptation run uses a
+disjoint "new" set, and the addressing model f_φ picks chunks of the prior episodes to mix into the agent's batches
+(RAMa: Retrospective Addressing for Multitask Adaptation; Algorithms 1-2, Eqs. 1-3). This file is a sibling of
+rama_dreamer.py: `diff rama_dreamer.py rama_metaworld.py` shows only the environment and task logic.
+
+Contents (each section sits under a `# ----` banner):
+    1. imports              2. Args (every knob a flag)       3. environment (Meta-World v3, scripted experts)
+    4. episode storage, replay and the multitask buffer       5. networks (encoder, decoder, RSSM, heads, f_φ)
+    6. losses: λ-returns, KL with free nats, the Dreamer update, the addressing objectives (Eqs. 1-3)
+    7. acting, logging, checkpoints, benchmark                8. the training loop (Algorithms 1 and 2)
+
+Run:
+    python rama_metaworld.py --env-id metaworld/push --task-set train --exp-name prior     # prior experience
+    python rama_metaworld.py --env-id metaworld/push --collect-expert 200 --exp-name prior # or: scripted expert
+    python rama_metaworld.py --env-id metaworld/push --task-set new --method rrama --prior-dirs runs/<prior run>
+    python rama_metaworld.py --env-id metaworld/push --total-steps 400 --time-limit 100 --batch-size 4 \
+        --seq-len 8 --updates-per-episode 2 --cnn-depth 4 --deter-size 16 --stoch-size 4 --hidden-size 16 \
+        --mlp-units 16 --horizon 3                                         # tiny smoke run (seconds)
+    python rama_metaworld.py --resume runs/<run>                          # continue a killed run
+"""
+
+# ----------------------------------------------------------------------------------------------------------
+# 1. Imports
+# ----------------------------------------------------------------------------------------------------------
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering; must be set before mujoco is imported
+
+import dataclasses
+import functools
+import glob
+import json
+import pickle
+import platform
+import random
+import sys
+import time
+from dataclasses import dataclass
+from typing import Literal, Optional, Tuple
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import tyro
+from torch import distributions as td
+
+td.Distribution.set_default_validate_args(False)  # argument checks cost Python time in the hot loops
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 2. Args
+# ----------------------------------------------------------------------------------------------------------
+@dataclass
+class Args:
+    # Experiment
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment (part of the run folder's name)"""
+    env_id: str = "metaworld/push"
+    """the environment: `metaworld/<task>` (push, peg-insert-side, sweep-into, dial-turn, drawer-close, any v3 name)"""
+    method: Literal["dreamer", "uniform", "vrama", "rrama", "rbrama"] = "dreamer"
+    """`dreamer` (no prior data), `uniform` (prior chunks mixed in uniformly: the paper's "No addressing"),
+    `vrama` (Eq. 1), `rrama` (Eq. 2), `rbrama` (Eq. 3)"""
+    task_sequence: Optional[str] = None
+    """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk,walker-run` (the agent
+    restarts per task; the addressing model and the multitask buffer carry over); overrides --env-id"""
+    seed: int = 1
+    """seed of python, numpy, torch, the environment and every sampler"""
+    device: str = "auto"
+    """`auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ..."""
+    total_steps: int = 1_000_000
+    """environment steps to train for (counting repeated actions, as the paper does)"""
+    obs_type: Literal["pixels", "state"] = "pixels"
+    """`pixels` (64x64 RGB, the paper) or `state` (the suite's proprioceptive vector, MLP encoder; cheap)"""
+    run_dir: str = "runs"
+    """the folder that holds run folders"""
+    resume: Optional[str] = None
+    """a run folder to continue (its saved args are used; the step count comes from its episodes)"""
+    track: bool = False
+    """log to Weights & Biases as well (needs `pip install wandb`)"""
+    wandb_project: str = "rama"
+    """the W&B project"""
+    eval_every: int = 10_000
+    """run evaluation episodes (no exploration noise) every this many environment steps"""
+    eval_episodes: int = 1
+    """evaluation episodes per evaluation"""
+    capture_video: bool = False
+    """save GIFs of evaluation episodes and of open-loop world-model predictions under `videos/`"""
+    benchmark: bool = False
+    """print seconds per update at the paper's size and a small size (CPU, and CUDA when present), then exit"""
+    benchmark_updates: int = 3
+    """timed updates per benchmark setting (after one warm-up update)"""
+    benchmark_methods: Tuple[str, ...] = ("dreamer", "uniform", "rrama", "vrama", "rbrama")
+    """methods the benchmark times"""
+
+    # Environment
+    action_repeat: int = 2
+    """each action is repeated this many environment steps"""
+    time_limit: Optional[int] = None
+    """environment steps per episode; None = 500 (Meta-World's own limit, also its maximum)"""
+    image_size: int = 64
+    """rendered image height and width"""
+    camera: str = "corner2_moved"
+    """camera: `corner2_moved` (corner2 at [0.75, 0.075, 0.7], the MWM / TD-MPC2 recipe) or a named camera"""
+    task_set: Literal["train", "new"] = "train"
+    """which 50 task vectors: `train` (collect prior experience) or the disjoint `new` set (adaptation)"""
+    num_tasks: int = 50
+    """task vectors drawn at start-up; one is active per episode and never shown to the agent"""
+    render_quality: Literal["fast", "shadows", "default"] = "fast"
+    """`fast` (no shadows or reflections, ~10 ms/frame on CPU), `shadows` (~40 ms), `default` (~130 ms)"""
+    collect_expert: int = 0
+    """write this many episodes of Meta-World's scripted expert to the run folder and exit (a fast prior buffer)"""
+
+    # World model
+    deter_size: int = 200
+    """RSSM deterministic (GRU) state size"""
+    stoch_size: int = 30
+    """RSSM stochastic (Gaussian) state size"""
+    hidden_size: int = 200
+    """RSSM hidden layer size"""
+    cnn_depth: int = 32
+    """channel multiplier of the conv encoder and decoder"""
+    mlp_units: int = 400
+    """units of the reward, value and actor MLPs (and of the state encoder/decoder)"""
+    free_nats: float = 3.0
+    """KL below this many nats is not penalised"""
+    kl_scale: float = 1.0
+    """weight of the KL term"""
+    model_lr: float = 6e-4
+    """Adam learning rate of the world model"""
+    grad_clip: float = 100.0
+    """gradient norm clipping of every optimiser"""
+
+    # Actor-critic
+    actor_lr: float = 8e-5
+    """Adam learning rate of the actor"""
+    value_lr: float = 8e-5
+    """Adam learning rate of the value"""
+    horizon: Optional[int] = None
+    """imagination horizon; None = 15 (the paper's setting)"""
+    gamma: float = 0.99
+    """discount"""
+    return_lambda: float = 0.95
+    """λ of the λ-returns"""
+    expl_noise: float = 0.3
+    """std of the Gaussian noise added to actions while collecting"""
+    actor_init_std: float = 5.0
+    """the actor's std before training (tanh-normal)"""
+    actor_min_std: float = 1e-4
+    """the actor's minimal std"""
+    actor_mean_scale: float = 5.0
+    """the actor's pre-tanh mean is squashed to [-scale, scale]"""
+
+    # Replay
+    batch_size: int = 50
+    """n: chunks per batch"""
+    seq_len: int = 50
+    """L: steps per chunk"""
+    updates_per_episode: int = 100
+    """C: updates between two collected episodes"""
+    prefill_episodes: int = 1
+    """S: random-action episodes collected before training (the paper: 1)"""
+
+    # Addressing (RAMa)
+    prior_dirs: Tuple[str, ...] = ()
+    """episode folders (or run folders holding `episodes/`) of earlier runs: the multitask buffer M"""
+    prior_min_return: Optional[float] = None
+    """keep only prior episodes whose return is at least this (the paper: 600 for walker walk)"""
+    prior_max_episodes: int = 1000
+    """K: prior episodes kept, subsampled at random"""
+    address_prob: float = 0.5
+    """p: probability that a world-model batch mixes in multitask chunks"""
+    current_fraction: float = 0.5
+    """β: fraction of a mixed batch that stays current-task chunks"""
+    address_batch: int = 50
+    """m: multitask chunks scored against the current chunks per addressing update"""
+    address_lr: float = 1e-3
+    """Adam learning rate of the addressing model"""
+    address_grad_clip: float = 100.0
+    """gradient norm clipping of the addressing model"""
+    address_units: int = 200
+    """GRU size of the addressing model = size of a trajectory embedding"""
+    address_cnn_depth: int = 16
+    """channel multiplier of the addressing model's own conv encoder"""
+    address_stop_grad_x: Optional[bool] = None
+    """stop the gradient through f(x); None = on for rrama and rbrama, off for vrama"""
+    address_standardize: bool = True
+    """standardise the REINFORCE advantages over the batch (as the authors' code does)"""
+    address_refresh: int = 100
+    """recompute the embeddings D of the candidate chunks every this many updates (C in Algorithm 2)"""
+    address_candidates: int = 10_000
+    """most candidate chunks of M held in D (a random subset of M's chunks at each refresh)"""
+    wm_on_addressed: bool = True
+    """train the world model on addressed chunks too (--no-wm-on-addressed: they only start imagination)"""
+    address_plot_every: int = 10
+    """draw the addressing-probabilities picture every this many episodes"""
+
+
+def resolve_defaults(args: Args) -> Args:
+    """Fill the defaults that depend on the environment (right after parsing; saved resolved in args.json)."""
+    return dataclasses.replace(args, horizon=args.horizon or 15, time_limit=args.time_limit or 500)
+
+
+def check_args(args: Args) -> None:
+    """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
+    positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
+                "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
+                "prefill_episodes", "benchmark_updates", "prior_max_episodes", "address_batch", "address_units",
+                "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every", "num_tasks"]
+    for name in positive:
+        if getattr(args, name) <= 0:
+            raise UsageError(f"--{name.replace('_', '-')} must be > 0 (got {getattr(args, name)})")
+    for name in ["eval_episodes"]:
+        if getattr(args, name) < 0:
+            raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
+    if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
+        raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
+    if not 0.0 <= args.address_prob <= 1.0 or not 0.0 <= args.current_fraction <= 1.0:
+        raise UsageError("--address-prob and --current-fraction must be in [0, 1]")
+    if args.method == "dreamer" and args.prior_dirs:
+        raise UsageError("--prior-dirs needs a method that uses prior data (uniform, vrama, rrama, rbrama)")
+    if args.seq_len < 2:
+        raise UsageError(f"--seq-len must be >= 2 (got {args.seq_len})")
+    if args.time_limit > 500:
+        raise UsageError(f"--time-limit {args.time_limit}: Meta-World episodes last at most 500 steps")
+    if args.time_limit // args.action_repeat < args.seq_len:
+        raise UsageError(f"--seq-len {args.seq_len} is longer than an episode "
+                         f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
+    for env_id in task_list(args):
+        make_env_spec(env_id)  # raises a UsageError naming --env-id
+
+
+def task_list(args: Args) -> list:
+    """The env ids to train in order: --task-sequence (short names get --env-id's suite) or just --env-id."""
+    if not args.task_sequence:
+        return [args.env_id]
+    suite_name = args.env_id.split("/")[0]
+    return [t if "/" in t else f"{suite_name}/{t}" for t in args.task_sequence.split(",") if t.strip()]
+
+
+ADDRESSED_METHODS = ("vrama", "rrama", "rbrama")
+
+
+class UsageError(Exception):
+    """Bad input from the command line or from files: printed as one line, exit code 2."""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 3. Environment: Meta-World v3 from pixels, with parametric task variability
+# ----------------------------------------------------------------------------------------------------------
+MOVED_CAMERA_POS = (0.75, 0.075, 0.7)  # MWM / TD-MPC2 recipe: corner2 moved closer (3.1.1 ships it as corner4)
+RENDER_QUALITIES = ("fast", "shadows", "default")
+
+
+def make_env_spec(env_id: str) -> dict:
+    """Parse `metaworld/<name>` (with or without `-v3`) into its parts; refuse unknown ids."""
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    suite_name, _, name = env_id.partition("/")
+    name = name.removesuffix("-v3")
+    if suite_name != "metaworld" or f"{name}-v3" not in ALL_V3_ENVIRONMENTS:
+        known = ", ".join(f"metaworld/{n.removesuffix('-v3')}" for n in ("push-v3", "dial-turn-v3", "drawer-close-v3"))
+        raise UsageError(f"--env-id: {env_id!r} is not a known environment (e.g. {known}, any Meta-World v3 name)")
+    return {"suite": suite_name, "task": f"{name}-v3", "name": name}
+
+
+@functools.lru_cache(maxsize=8)
+def _sample_rand_vecs(task: str, seed: int, count: int) -> np.ndarray:
+    """`count` distinct task vectors (float64), drawn the way Meta-World draws its own benchmark tasks.
+
+    Resetting an env with an unfrozen vector runs the task's own sampler, rejection loops included (e.g.
+    pick-place redraws goals too close to the object), so every vector is a valid configuration. We use
+    the env's private generator (`seeded_rand_vec`) instead of Meta-World's global np.random seeding.
+    """
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    env = ALL_V3_ENVIRONMENTS[task]()
+    env._freeze_rand_vec, env.seeded_rand_vec, env._set_task_called = False, True, True
+    env.np_random = np.random.default_rng(seed)
+    vecs = []
+    for _ in range(20 * count):
+        if len(vecs) == count:
+            break
+        env.reset()
+        if not any(np.array_equal(env._last_rand_vec, v) for v in vecs):  # keep only distinct vectors
+            vecs.append(env._last_rand_vec.copy())
+    env.close()
+    if len(vecs) < count:
+        raise UsageError(f"--num-tasks: {task} has fewer than {count} distinct task vectors")
+    return np.stack(vecs)
+
+
+def task_vectors(env_name: str, task_set: str, seed: int, num_tasks: int = 50) -> np.ndarray:
+    """The (num_tasks, D) float32 task vectors of a set: "train" (prior experience) or "new" (adaptation).
+
+    Both sets come from one stream of 2 * num_tasks distinct draws: train = the first half, new = the
+    second, so they are disjoint by construction (checked draw by draw) and fixed by (env, seed).
+    """
+    return _task_vectors64(env_name, task_set, seed, num_tasks).astype(np.float32)
+
+
+def _task_vectors64(env_name, task_set, seed, num_tasks):
+    if task_set not in ("train", "new"):
+        raise UsageError(f"--task-set: {task_set!r} is not one of train, new")
+    vecs = _sample_rand_vecs(make_env_spec(f"metaworld/{env_name}")["task"], int(seed), 2 * num_tasks)
+    return vecs[:num_tasks] if task_set == "train" else vecs[num_tasks:]
+
+
+class MetaWorldEnv:
+    """A Meta-World v3 task with action repeat, a time limit and 64x64 RGB (or 39-d state) observations.
+
+    Parametric variability (paper, Sec. 5): `num_tasks` task vectors (object/goal positions) of `task_set` are
+    drawn at start-up from `task_seed` (default: `seed`; pass the run's seed to the eval env too so that both
+    see the same set). Each reset makes one active, chosen by the episode's seed (or the env's own generator
+    when reset() gets none). Given its vector an episode is deterministic: Meta-World ignores reset(seed=) and
+    env.seed(); the frozen vector alone places object and goal. The agent never sees the vector (the state
+    observation's goal slot is zeroed, as in ML1); `task_vector` holds it for analysis. Note that the goal
+    marker (a green site) is drawn in the image, as in the visual Meta-World literature.
+
+    `last_success`: True once info["success"] held at any env step of the current episode.
+    """
+
+    def __init__(self, env_id, seed, obs_type="pixels", image_size=64, action_repeat=2, time_limit=500,
+                 camera="corner2_moved", task_set="train", num_tasks=50, render_quality="fast", task_seed=None):
+        import mujoco
+        from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+        from metaworld.types import Task
+
+        spec = make_env_spec(env_id)
+        if render_quality not in RENDER_QUALITIES:
+            raise UsageError(f"--render-quality: {render_quality!r} is not one of {', '.join(RENDER_QUALITIES)}")
+        self.task_name = spec["name"]
+        self._env = ALL_V3_ENVIRONMENTS[spec["task"]]()
+        self._env.max_path_length = time_limit  # Meta-World truncates there and raises one step later
+        cls, task = type(self._env), spec["task"]
+        self._vectors = _task_vectors64(spec["name"], task_set, seed if task_seed is None else task_seed, num_tasks)
+        self._tasks = [Task(env_name=task, data=pickle.dumps(dict(rand_vec=v, env_cls=cls, partially_observable=True)))
+                       for v in self._vectors]
+        self._env.set_task(self._tasks[0])  # builds the goal space etc.; reset() picks the episode's task
+        self._rng = np.random.default_rng(seed)
+        self._obs_type, self._repeat = obs_type, action_repeat
+        self._max_agent_steps = -(-time_limit // action_repeat)  # ceil: the env's own truncation ends the last one
+        self.action_size = 4
+        self.obs_shape = (image_size, image_size, 3) if obs_type == "pixels" else (39,)
+        self.task_index, self.task_vector, self.last_success = 0, self._vectors[0].astype(np.float32), False
+        self._state, self._policy = None, None
+
+        model = self._env.model  # each env compiles its own MjModel: camera and quality edits stay local
+        if camera == "corner2_moved":
+            model.cam_pos[model.camera("corner2").id] = MOVED_CAMERA_POS
+        cameras = ["corner2_moved"] + [model.camera(i).name for i in range(model.ncam)]
+        if camera not in cameras:
+            raise UsageError(f"--camera: {camera!r} is not one of {', '.join(cameras)}")
+        self._camera = model.camera("corner2" if camera == "corner2_moved" else camera).id
+        self._flip = camera.startswith("corner")  # corner cameras' xml poses were made for mujoco-py's
+        # bottom-up buffers: flipping rows gives the upright (mirrored) view MWM/TD-MPC2 agents saw
+        if render_quality != "default":  # read when the GL context is made: set before the Renderer
+            model.vis.quality.offsamples = 0  # no multisampling
+            model.vis.quality.shadowsize = 1024
+        self._renderer = mujoco.Renderer(model, image_size, image_size)
+        flags = self._renderer.scene.flags  # mjv_updateScene leaves these alone: set once
+        flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = render_quality == "default"
+        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = render_quality != "fast"
+
+    def _observe(self):
+        if self._obs_type == "pixels":
+            return self.render()
+        return self._state.astype(np.float32)  # 39-d, goal slot zeroed (partially observable)
+
+    def render(self):
+        self._renderer.update_scene(self._env.data, camera=self._camera)
+        image = self._renderer.render()
+        return np.ascontiguousarray(image[::-1] if self._flip else image)  # (H, W, 3) uint8
+
+    def reset(self, seed=None):
+        rng = self._rng if seed is None else np.random.default_rng(seed)
+        self.task_index = int(rng.integers(len(self._tasks)))
+        self.task_vector = self._vectors[self.task_index].astype(np.float32)
+        self._env.set_task(self._tasks[self.task_index])
+        self._state, _ = self._env.reset()
+        self._steps, self.last_success = 0, False
+        return self._observe()
+
+    def step(self, action):
+        """Returns (obs, reward, terminated, truncated, info); Meta-World never terminates (not even on success)."""
+        action = np.clip(np.asarray(action, np.float64), -1.0, 1.0)  # Meta-World leaves the gripper unclipped
+        reward, truncated, success = 0.0, False, False
+        for _ in range(self._repeat):
+            self._state, r, _, truncated, info = self._env.step(action)
+            reward, success = reward + float(r), success or bool(info["success"])
+            if truncated:  # a further step would raise
+                break
+        self.last_success |= success
+        self._steps += 1
+        truncated = truncated or self._steps >= self._max_agent_steps
+        return self._observe(), reward, False, truncated, {"success": success}
+
+    def extras(self) -> dict:
+        """What an episode file stores besides the trajectory: the task vector (for analysis, never an input)."""
+        return {"task_vector": self.task_vector, "task_index": self.task_index}
+
+    def close(self):
+        """Free the GL context now: one left to the interpreter's exit prints EGL errors. Safe to call twice."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._env.close()
+            self._renderer = None
+
+
+def expert_action(env: MetaWorldEnv) -> np.ndarray:
+    """The scripted Meta-World policy's action for the env's current state (any obs_type).
+
+    The policies read the goal from the last 3 state entries, which partial observability zeroes: put the
+    true goal back (a copy; the env's own observation stays goal-free).
+    """
+    if env._policy is None:
+        import warnings
+
+        from metaworld.policies import ENV_POLICY_MAP
+
+        warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high")  # their gains clip; harmless
+        env._policy = ENV_POLICY_MAP[f"{env.task_name}-v3"]()
+    state = env._state.copy()
+    state[-3:] = env._env._get_pos_goal()
+    return np.clip(env._policy.get_action(state), -1.0, 1.0).astype(np.float32)
+
+
+def make_env(args: Args, env_id: str, seed: int):
+    # every env of a run (train and eval) draws its task vectors from the run's seed: the same set
+    return MetaWorldEnv(env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit,
+                        args.camera, args.task_set, args.num_tasks, args.render_quality, task_seed=args.seed)
+
+
+def collect_expert_episodes(args: Args, run_path: str):
+    """A fast prior buffer: episodes of Meta-World's scripted expert on the run's task set, then exit."""
+    from tqdm import tqdm
+
+    env = make_env(args, args.env_id, args.seed)
+    episode_dir = os.path.join(run_path, "episodes")
+    os.makedirs(episode_dir, exist_ok=True)
+    try:
+        for index in tqdm(range(len(list_episode_files(episode_dir)), args.collect_expert), desc="expert episodes"):
+            episode, _ = run_episode(env, lambda o: expert_action(env), seed=args.seed * 1_000_003 + index,
+                                     task=env.task_name)
+            save_episode(episode_dir, index, episode)
+    finally:
+        env.close()
+    print(f"wrote {args.collect_expert} expert episodes to {episode_dir}", flush=True)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 4. Episode storage and replay
+# ----------------------------------------------------------------------------------------------------------
+# An episode is a dict of arrays over T+1 steps: obs[t] is seen after action[t] (action[0] = 0) and brings
+# reward[t] (reward[0] = 0); terminal[t] marks a true end (not a time limit). One `.npz` file per episode,
+# named `{index:06d}-{agent_steps}.npz`, so the step count of a run is recoverable from the file names alone.
+def episode_filename(index: int, episode: dict) -> str:
+    return f"{index:06d}-{len(episode['reward']) - 1}.npz"
+
+
+def save_episode(directory: str, index: int, episode: dict) -> str:
+    """Write atomically: a temp file in the same folder, then a rename, so a kill never leaves half a file."""
+    path = os.path.join(directory, episode_filename(index, episode))
+    tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, **episode)
+    os.replace(tmp, path)
+    return path
+
+
+def load_episode(path: str) -> dict:
+    try:
+        with np.load(path) as data:
+            episode = {k: data[k] for k in data.files}
+    except Exception as e:  # a truncated or foreign file: name it, don't crash deep inside
+        raise UsageError(f"{path}: not a readable episode file ({type(e).__name__}: {e})") from None
+    missing = {"obs", "action", "reward", "terminal", "task"} - set(episode)
+    if missing:
+        raise UsageError(f"{path}: not an episode file (missing {sorted(missing)})")
+    episode["task"] = str(episode["task"])
+    return episode
+
+
+def list_episode_files(directory: str) -> list:
+    return sorted(glob.glob(os.path.join(directory, "[0-9]*.npz")))
+
+
+class Replay:
+    """Episodes in memory (images as uint8) and uniform sampling of fixed-length chunks.
+
+    A chunk is addressed by (episode id, start); `gather` copies only the chunks, never whole episodes.
+    """
+
+    def __init__(self):
+        self.episodes, self.tasks, self.returns = [], [], []
+        self._lengths = np.zeros(0, np.int64)  # (E,) steps per episode (T+1)
+
+    def add(self, episode: dict):
+        self.episodes.append(episode)
+        self.tasks.append(str(episode["task"]))
+        self.returns.append(float(episode["reward"].sum()))
+        self._lengths = np.append(self._lengths, len(episode["reward"]))
+
+    def memory_bytes(self) -> int:
+        return sum(v.nbytes for ep in self.episodes for v in ep.values() if isinstance(v, np.ndarray))
+
+    def __len__(self):
+        return len(self.episodes)
+
+    def num_chunks(self, seq_len: int) -> int:
+        return int(np.maximum(self._lengths - seq_len + 1, 0).sum())
+
+    def sample_ids(self, n: int, seq_len: int, rng: np.random.Generator):
+        """n (episode, start) pairs, uniform over all chunks of length seq_len."""
+        starts_per_episode = np.maximum(self._lengths - seq_len + 1, 0)  # (E,)
+        total = starts_per_episode.sum()
+        if total == 0:
+            raise ValueError(f"no episode has {seq_len} steps")
+        episode_ids = rng.choice(len(self.episodes), size=n, p=starts_per_episode / total)  # (n,)
+        starts = rng.integers(0, starts_per_episode[episode_ids])  # (n,)
+        return episode_ids, starts
+
+    def gather(self, episode_ids, starts, seq_len: int) -> dict:
+        keys = ("obs", "action", "reward", "terminal")
+        return {k: np.stack([self.episodes[e][k][s:s + seq_len] for e, s in zip(episode_ids, starts)]) for k in keys}
+
+    def sample(self, n: int, seq_len: int, rng: np.random.Generator) -> dict:
+        return self.gather(*self.sample_ids(n, seq_len, rng), seq_len)
+
+    def grid_ids(self, seq_len: int, cap: int, rng: np.random.Generator):
+        """Non-overlapping chunks of every episode (a random phase each), at most `cap` of them at random."""
+        episode_ids, starts = [], []
+        for e, length in enumerate(self._lengths):
+            if length >= seq_len:
+                first = rng.integers(0, length - seq_len + 1) % seq_len
+                grid = np.arange(first, length - seq_len + 1, seq_len)
+                episode_ids.append(np.full(len(grid), e))
+                starts.append(grid)
+        episode_ids, starts = np.concatenate(episode_ids), np.concatenate(starts)
+        if len(starts) > cap:
+            keep = rng.choice(len(starts), cap, replace=False)
+            episode_ids, starts = episode_ids[keep], starts[keep]
+        return episode_ids, starts
+
+
+def episode_folders(directory: str) -> list:
+    """Where a run keeps episodes: DIR itself, DIR/episodes, or DIR/*/episodes (a --task-sequence run)."""
+    for pattern in ("", "episodes", os.path.join("*", "episodes")):
+        folders = [d for d in sorted(glob.glob(os.path.join(directory, pattern))) if list_episode_files(d)]
+        if folders:
+            return folders
+    return []
+
+
+def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_size: int, rng) -> list:
+    """The multitask buffer M: episodes of earlier runs, filtered by return, K of them at random."""
+    paths = []
+    for directory in dirs:
+        if not os.path.isdir(directory):
+            raise UsageError(f"--prior-dirs {directory}: no such folder")
+        folders = episode_folders(directory)
+        if not folders:
+            raise UsageError(f"--prior-dirs {directory}: holds no episode files (NNNNNN-LEN.npz)")
+        paths += [p for folder in folders for p in list_episode_files(folder)]
+    if min_return is not None:  # reading one member of an .npz is cheap: filter before loading images
+        def stored_return(path):
+            try:
+                with np.load(path) as data:
+                    return float(data["return"])
+            except Exception as e:
+                raise UsageError(f"{path}: not a readable episode file ({type(e).__name__}: {e})") from None
+        paths = [p for p in paths if stored_return(p) >= min_return]
+        if not paths:
+            raise UsageError(f"--prior-min-return {min_return}: no prior episode has that return")
+    if len(paths) > max_episodes:
+        paths = [paths[i] for i in sorted(rng.choice(len(paths), max_episodes, replace=False))]
+    episodes = []
+    for path in paths:
+        episode = load_episode(path)
+        if episode["obs"].shape[1:] != tuple(obs_shape) or episode["action"].shape[1:] != (action_size,):
+            raise UsageError(f"{path}: observations {episode['obs'].shape[1:]} / actions {episode['action'].shape[1:]}"
+                             f" do not match the environment's {tuple(obs_shape)} / ({action_size},)")
+        episodes.append(episode)
+    return episodes
+
+
+def preprocess_obs(obs, device):
+    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]."""
+    obs = torch.as_tensor(obs, device=device)  # uint8 crosses to the device: 4x less to copy
+    if obs.dtype == torch.uint8:
+        return obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5)
+    return obs.float()
+
+
+def to_torch(batch: dict, device) -> dict:
+    """numpy chunks (B, T, ...) -> float torch tensors on device (terminal stays bool)."""
+    out = {k: torch.as_tensor(v, device=device) for k, v in batch.items() if k != "obs"}
+    out["obs"] = preprocess_obs(batch["obs"], device)
+    out["action"], out["reward"] = out["action"].float(), out["reward"].float()
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 5. Networks
+# ----------------------------------------------------------------------------------------------------------
+def mlp(in_size: int, units: int, layers: int, out_size: int) -> nn.Sequential:
+    modules = []
+    for _ in range(layers):
+        modules += [nn.Linear(in_size, units), nn.ELU()]
+        in_size = units
+    return nn.Sequential(*modules, nn.Linear(in_size, out_size))
+
+
+def conv_sizes(size: int, layers: int = 4) -> list:
+    """Spatial sizes through `layers` convs with kernel 4, stride 2, no padding: 64 -> 31 -> 14 -> 6 -> 2."""
+    sizes = [size]
+    for _ in range(layers):
+        sizes.append((sizes[-1] - 4) // 2 + 1)
+    return sizes
+
+
+class ConvEncoder(nn.Module):
+    """Four convs (kernel 4, stride 2, depths 1,2,4,8 x depth): (N, 3, H, W) -> (N, embed_size)."""
+
+    def __init__(self, obs_shape, depth: int):
+        super().__init__()
+        height, width, channels = obs_shape
+        layers, in_ch = [], channels
+        for i in range(4):
+            layers += [nn.Conv2d(in_ch, depth * 2**i, 4, 2), nn.ReLU()]
+            in_ch = depth * 2**i
+        self.net = nn.Sequential(*layers, nn.Flatten())
+        self.embed_size = in_ch * conv_sizes(height)[-1] * conv_sizes(width)[-1]
+
+    def forward(self, obs):  # (B, T, 3, H, W) -> (B, T, E)
+        return self.net(obs.flatten(0, 1)).unflatten(0, obs.shape[:2])
+
+
+class ConvDecoder(nn.Module):
+    """Mirror of the encoder: features -> mean image (B, T, 3, H, W); output paddings land on H, W exactly."""
+
+    def __init__(self, feat_size: int, obs_shape, depth: int):
+        super().__init__()
+        height, width, channels = obs_shape
+        hs, ws = conv_sizes(height), conv_sizes(width)
+        self._start = (depth * 8, hs[-1], ws[-1])
+        self.linear = nn.Linear(feat_size, int(np.prod(self._start)))
+        layers, in_ch = [], depth * 8
+        for i in range(4):  # sizes go hs[4] -> hs[3] -> ... -> hs[0]
+            out_ch = channels if i == 3 else depth * 2 ** (2 - i)
+            pad = (hs[3 - i] - ((hs[4 - i] - 1) * 2 + 4), ws[3 - i] - ((ws[4 - i] - 1) * 2 + 4))
+            layers += [nn.ConvTranspose2d(in_ch, out_ch, 4, 2, output_padding=pad)] + ([nn.ReLU()] if i < 3 else [])
+            in_ch = out_ch
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, feat):  # (B, T, F) -> (B, T, 3, H, W)
+        x = self.linear(feat.flatten(0, 1)).view(-1, *self._start)
+        return self.net(x).unflatten(0, feat.shape[:2])
+
+
+class MLPEncoder(nn.Module):
+    """State observations: (B, T, D) -> (B, T, units)."""
+
+    def __init__(self, obs_size: int, units: int):
+        super().__init__()
+        self.net, self.embed_size = nn.Sequential(mlp(obs_size, units, 2, units), nn.ELU()), units
+
+    def forward(self, obs):
+        return self.net(obs)
+
+
+class MLPDecoder(nn.Module):
+    def __init__(self, feat_size: int, obs_size: int, units: int):
+        super().__init__()
+        self.net = mlp(feat_size, units, 2, obs_size)
+
+    def forward(self, feat):
+        return self.net(feat)
+
+
+class RSSM(nn.Module):
+    """Recurrent state-space model: deterministic GRU state h and Gaussian stochastic state z.
+
+    prior p(z_t | h_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t);  posterior q(z_t | h_t, e_t) with e_t the obs embedding.
+    A state is a dict of tensors: mean, std, stoch (B, S) and deter (B, D).
+    """
+
+    def __init__(self, action_size, embed_size, stoch_size=30, deter_size=200, hidden_size=200):
+        super().__init__()
+        self.stoch_size, self.deter_size = stoch_size, deter_size
+        self.img_in = nn.Linear(stoch_size + action_size, hidden_size)
+        self.gru = nn.GRUCell(hidden_size, deter_size)
+        self.img_out = nn.Sequential(nn.Linear(deter_size, hidden_size), nn.ELU(), nn.Linear(hidden_size, 2 * stoch_size))
+        # the posterior's first layer reads [h, e]; split in two so the embedding half runs once for all t
+        self.obs_deter = nn.Linear(deter_size, hidden_size)
+        self.obs_embed = nn.Linear(embed_size, hidden_size, bias=False)
+        self.obs_out = nn.Linear(hidden_size, 2 * stoch_size)
+
+    @property
+    def feat_size(self):
+        return self.stoch_size + self.deter_size
+
+    def initial(self, batch: int, device) -> dict:
+        zeros = lambda n: torch.zeros(batch, n, device=device)  # noqa: E731
+        return {"mean": zeros(self.stoch_size), "std": zeros(self.stoch_size),
+                "stoch": zeros(self.stoch_size), "deter": zeros(self.deter_size)}
+
+    @staticmethod
+    def feat(state: dict):
+        return torch.cat([state["stoch"], state["deter"]], -1)
+
+    def _dist_params(self, x):
+        mean, std = x.chunk(2, -1)
+        std = F.softplus(std) + 0.1
+        return mean, std, mean + std * torch.randn_like(std)
+
+    def img_step(self, state: dict, action) -> dict:
+        x = F.elu(self.img_in(torch.cat([state["stoch"], action], -1)))
+        deter = self.gru(x, state["deter"])
+        mean, std, stoch = self._dist_params(self.img_out(deter))
+        return {"mean": mean, "std": std, "stoch": stoch, "deter": deter}
+
+    def obs_step(self, prior: dict, embed_proj) -> dict:
+        """Posterior from the prior's h and the projected embedding (obs_embed(e_t), precomputed)."""
+        x = F.elu(self.obs_deter(prior["deter"]) + embed_proj)
+        mean, std, stoch = self._dist_params(self.obs_out(x))
+        return {"mean": mean, "std": std, "stoch": stoch, "deter": prior["deter"]}
+
+    def observe(self, embed, action, state: Optional[dict] = None):
+        """Filter a chunk: embed (B, T, E), action (B, T, A) -> posteriors and priors, dicts of (B, T, ...)."""
+        if state is None:
+            state = self.initial(embed.shape[0], embed.device)
+        embed_proj = self.obs_embed(embed)  # (B, T, hidden), one matmul for the whole chunk
+        posts, priors = [], []
+        for t in range(embed.shape[1]):
+            prior = self.img_step(state, action[:, t])
+            state = self.obs_step(prior, embed_proj[:, t])
+            posts.append(state)
+            priors.append(prior)
+        stack = lambda states: {k: torch.stack([s[k] for s in states], 1) for k in states[0]}  # noqa: E731
+        return stack(posts), stack(priors)
+
+    def imagine_actions(self, state: dict, actions):
+        """Open-loop rollout with given actions (B, T, A) -> prior states (B, T, ...)."""
+        priors = []
+        for t in range(actions.shape[1]):
+            state = self.img_step(state, actions[:, t])
+            priors.append(state)
+        return {k: torch.stack([s[k] for s in priors], 1) for k in priors[0]}
+
+
+class WorldModel(nn.Module):
+    def __init__(self, obs_shape, action_size, args: Args):
+        super().__init__()
+        if len(obs_shape) == 3:
+            self.encoder = ConvEncoder(obs_shape, args.cnn_depth)
+        else:
+            self.encoder = MLPEncoder(obs_shape[0], args.mlp_units)
+        self.rssm = RSSM(action_size, self.encoder.embed_size, args.stoch_size, args.deter_size, args.hidden_size)
+        feat = self.rssm.feat_size
+        if len(obs_shape) == 3:
+            self.decoder = ConvDecoder(feat, obs_shape, args.cnn_depth)
+        else:
+            self.decoder = MLPDecoder(feat, obs_shape[0], args.mlp_units)
+        self.reward = mlp(feat, args.mlp_units, 2, 1)
+
+
+class Actor(nn.Module):
+    """Tanh-normal policy over features: (..., F) -> a distribution over actions in [-1, 1]^A."""
+
+    def __init__(self, feat_size, action_size, units, init_std=5.0, min_std=1e-4, mean_scale=5.0):
+        super().__init__()
+        self.net = mlp(feat_size, units, 4, 2 * action_size)
+        self.action_size = action_size
+        self.init_std, self.min_std, self.mean_scale = init_std, min_std, mean_scale
+
+    def forward(self, feat):
+        return tanh_normal(self.net(feat), self.init_std, self.min_std, self.mean_scale)
+
+    def mode(self, feat):
+        """tanh of the Gaussian mean: the action used in evaluation."""
+        mean = self.net(feat).chunk(2, -1)[0]
+        return torch.tanh(self.mean_scale * torch.tanh(mean / self.mean_scale))
+
+
+def tanh_normal(out, init_std, min_std, mean_scale):
+    """Dreamer's squashed Gaussian: mean in [-scale, scale], std = softplus(x + softplus^-1(init)) + min."""
+    mean, std = out.chunk(2, -1)
+    mean = mean_scale * torch.tanh(mean / mean_scale)
+    std = F.softplus(std + np.log(np.expm1(init_std))) + min_std
+    dist = td.TransformedDistribution(td.Normal(mean, std), [td.TanhTransform(cache_size=1)])
+    return td.Independent(dist, 1)
+
+
+# ALGO LOGIC: addressing
+class AddressNet(nn.Module):
+    """f_φ: a chunk of trajectory -> an embedding (B, units).
+
+    Its own encoder (not the world model's: the features that make a good addressing are not those that make a
+    good reconstruction) reads each frame; [frame features, action, reward] pass an ELU layer into a GRU whose
+    last output is the embedding.
+    """
+
+    def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int):
+        super().__init__()
+        self.encoder = ConvEncoder(obs_shape, cnn_depth) if len(obs_shape) == 3 else MLPEncoder(obs_shape[0], units)
+        self.inp = nn.Sequential(nn.Linear(self.encoder.embed_size + action_size + 1, units), nn.ELU())
+        self.gru = nn.GRU(units, units, batch_first=True)
+
+    def forward(self, obs, action, reward):  # (B, T, ...) -> (B, units)
+        x = self.inp(torch.cat([self.encoder(obs), action, reward[..., None]], -1))  # (B, T, units)
+        return self.gru(x)[0][:, -1]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 6. Losses and imagination
+# ----------------------------------------------------------------------------------------------------------
+def masked_mean(x, mask=None):
+    """Mean of x (B, T) over the chunks whose mask (B,) is 1 (all chunks when mask is None)."""
+    if mask is None:
+        return x.mean()
+    return (x * mask[:, None]).sum() / (mask.sum() * x.shape[1]).clamp(min=1.0)
+
+
+def kl_with_free_nats(post: dict, prior: dict, free_nats: float, mask=None):
+    """KL(post || prior) summed over the state, averaged over (B, T), then clipped below at free_nats (v1)."""
+    kl = td.kl_divergence(td.Normal(post["mean"], post["std"]), td.Normal(prior["mean"], prior["std"])).sum(-1)
+    kl = masked_mean(kl, mask)
+    return torch.clamp(kl, min=free_nats), kl
+
+
+def gaussian_loglik(mean, target, event_dims: int):
+    """log N(target; mean, 1) summed over the last event_dims dims: (B, T, ...) -> (B, T)."""
+    loglik = -0.5 * (target - mean) ** 2 - 0.5 * np.log(2 * np.pi)
+    return loglik.flatten(2).sum(-1) if event_dims else loglik
+
+
+def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: float, reward_mask=None,
+                     model_mask=None):
+    """ELBO of a batch of chunks: (KL with free nats) - log p(o|s) - log p(r|s). Returns loss, posts, metrics.
+
+    reward_mask (B,) drops the reward term on chunks whose reward belongs to another task; model_mask (B,) drops
+    chunks from the whole loss (--no-wm-on-addressed). Posteriors come back for every chunk.
+    """
+    embed = wm.encoder(batch["obs"])  # (B, T, E)
+    post, prior = wm.rssm.observe(embed, batch["action"])
+    feat = wm.rssm.feat(post)  # (B, T, F)
+    obs_dims = 3 if batch["obs"].dim() == 5 else 1
+    obs_loglik = masked_mean(gaussian_loglik(wm.decoder(feat), batch["obs"], obs_dims), model_mask)
+    if model_mask is not None:
+        reward_mask = model_mask if reward_mask is None else reward_mask * model_mask
+    reward_loglik = masked_mean(gaussian_loglik(wm.reward(feat).squeeze(-1), batch["reward"], 0), reward_mask)
+    kl_loss, kl_value = kl_with_free_nats(post, prior, free_nats, model_mask)
+    loss = kl_scale * kl_loss - obs_loglik - reward_loglik
+    metrics = {"losses/world_model": loss, "losses/kl": kl_value, "losses/obs_loglik": obs_loglik,
+               "losses/reward_loglik": reward_loglik}
+    return loss, post, metrics
+
+
+def lambda_return(reward, value, pcont, bootstrap, lam: float):
+    """λ-returns over time (dim 0): R_t = r_t + γ_t [(1-λ) v_{t+1} + λ R_{t+1}], R_T = bootstrap.
+
+    reward, value, pcont: (H, N); bootstrap: (N,). Returns (H, N).
+    """
+    next_values = torch.cat([value[1:], bootstrap[None]], 0)
+    inputs = reward + pcont * next_values * (1 - lam)
+    returns, last = [], bootstrap
+    for t in reversed(range(reward.shape[0])):
+        last = inputs[t] + pcont[t] * lam * last
+        returns.append(last)
+    return torch.stack(returns[::-1], 0)
+
+
+def imagine(wm: WorldModel, actor: Actor, start: dict, horizon: int):
+    """Roll the prior forward from start states (N, ...) with actions from the actor: features (H, N, F)."""
+    state, feats = start, []
+    for _ in range(horizon):
+        action = actor(wm.rssm.feat(state).detach()).rsample()
+        state = wm.rssm.img_step(state, action)
+        feats.append(wm.rssm.feat(state))
+    return torch.stack(feats, 0)
+
+
+def imagined_returns(wm: WorldModel, value_net: nn.Module, feats, gamma: float, lam: float):
+    """Rewards and values along imagined features (H, N, F) -> λ-returns (H-1, N) and their weights."""
+    reward = wm.reward(feats).squeeze(-1)  # (H, N)
+    value = value_net(feats).squeeze(-1)  # (H, N)
+    pcont = torch.full_like(reward, gamma)
+    returns = lambda_return(reward[:-1], value[:-1], pcont[:-1], value[-1], lam)  # (H-1, N)
+    # weight of step t = γ^t: later imagined steps matter less
+    weights = torch.cumprod(torch.cat([torch.ones_like(pcont[:1]), pcont[:-2]], 0), 0).detach()  # (H-1, N)
+    return returns, weights
+
+
+def flatten_states(states: dict) -> dict:
+    """(B, T, ...) states -> (B*T, ...) detached start states for imagination."""
+    return {k: v.detach().flatten(0, 1) for k, v in states.items()}
+
+
+class Freeze:
+    """Turn off gradients of some modules inside a block: actor and value losses must not train the model."""
+
+    def __init__(self, *modules):
+        self._params = [p for m in modules for p in m.parameters()]
+
+    def __enter__(self):
+        for p in self._params:
+            p.requires_grad_(False)
+
+    def __exit__(self, *exc):
+        for p in self._params:
+            p.requires_grad_(True)
+
+
+def optimizer_step(optimizer, loss, params, clip: float):
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    norm = nn.utils.clip_grad_norm_(params, clip)
+    optimizer.step()
+    return norm
+
+
+class Agent(nn.Module):
+    """The Dreamer agent: world model, actor, value and their optimisers."""
+
+    def __init__(self, obs_shape, action_size, args: Args):
+        super().__init__()
+        self.wm = WorldModel(obs_shape, action_size, args)
+        feat = self.wm.rssm.feat_size
+        self.actor = Actor(feat, action_size, args.mlp_units, args.actor_init_std, args.actor_min_std,
+                           args.actor_mean_scale)
+        self.value = mlp(feat, args.mlp_units, 3, 1)
+        self.model_opt = torch.optim.Adam(self.wm.parameters(), lr=args.model_lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr)
+        self.value_opt = torch.optim.Adam(self.value.parameters(), lr=args.value_lr)
+
+    def optimizers(self):
+        return {"model": self.model_opt, "actor": self.actor_opt, "value": self.value_opt}
+
+
+def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_mask=None) -> dict:
+    """One Dreamer update: world model on the batch, then actor and value in imagination from its posteriors."""
+    timings = {}
+    t0 = time.perf_counter()
+    wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask)
+    metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(), args.grad_clip)
+    timings["world_model"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    with Freeze(agent.wm, agent.value):  # actor gradients flow through the model and value, but train neither
+        feats = imagine(agent.wm, agent.actor, flatten_states(post), args.horizon)  # (H, B*T, F)
+        returns, weights = imagined_returns(agent.wm, agent.value, feats, args.gamma, args.return_lambda)
+        actor_loss = -(weights * returns).mean()
+    metrics["losses/actor"] = actor_loss
+    metrics["losses/actor_grad_norm"] = optimizer_step(agent.actor_opt, actor_loss, agent.actor.parameters(),
+                                                       args.grad_clip)
+    value_pred = agent.value(feats[:-1].detach()).squeeze(-1)  # (H-1, B*T)
+    value_loss = -(weights * gaussian_loglik(value_pred, returns.detach(), 0)).mean()
+    metrics["losses/value"] = value_loss
+    metrics["losses/value_grad_norm"] = optimizer_step(agent.value_opt, value_loss, agent.value.parameters(),
+                                                       args.grad_clip)
+    metrics["charts/imagined_return"] = returns.mean()
+    timings["actor_critic"] = time.perf_counter() - t0
+    return {"metrics": metrics, "timings": timings}
+
+
+# ALGO LOGIC: addressing — q(j | x, M) = softmax_j(f(x)ᵀ f(M_j)) and the three objectives
+def address_logits(emb_x, emb_m, stop_grad_x: bool):
+    """(n, U) current-task embeddings, (m, U) multitask embeddings -> (n, m) logits, a plain dot product."""
+    return (emb_x.detach() if stop_grad_x else emb_x) @ emb_m.T
+
+
+def straight_through_sample(logits):
+    """One-hot samples j ~ softmax(logits) (n, m) whose gradient is that of the probabilities (no Gumbel noise)."""
+    probs = logits.softmax(-1)
+    index = torch.multinomial(probs.detach(), 1).squeeze(-1)  # (n,)
+    one_hot = F.one_hot(index, probs.shape[-1]).to(probs.dtype)
+    return one_hot + probs - probs.detach(), index  # forward: exactly one-hot; backward: d/d probs
+
+
+def select_chunks(one_hot, chunks):
+    """Differentiable selection by index: (n, m) one-hots times a batch (m, T, ...) -> (n, T, ...)."""
+    return torch.einsum("nm,m...->n...", one_hot, chunks)
+
+
+@torch.no_grad()
+def predicted_reward_sum(wm: WorldModel, batch: dict):
+    """Σ_t of the reward head on the posterior states of each chunk: (B,), the bandit's reward (Eqs. 2-3)."""
+    post, _ = wm.rssm.observe(wm.encoder(batch["obs"]), batch["action"])
+    return wm.reward(wm.rssm.feat(post)).squeeze(-1).sum(1)
+
+
+def reinforce_loss(logits, index, advantage, standardize: bool):
+    """Eqs. 2-3: −A · log q(j | x). Minimising it raises the probability of picks with A > 0."""
+    advantage = advantage.detach()
+    if standardize and advantage.numel() > 1:
+        advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+    log_q = logits.log_softmax(-1).gather(-1, index[:, None]).squeeze(-1)  # (n,)
+    return -(advantage * log_q).mean()
+
+
+def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float, lam: float):
+    """Eq. 1: imagine from the posteriors of the selected chunks M_j and return −Σ_t V_λ (mean over starts).
+
+    The agent stays fixed (frozen); the gradient reaches φ through the one-hots, the inputs of the world model.
+    """
+    obs, action = select_chunks(one_hot, m_batch["obs"]), select_chunks(one_hot, m_batch["action"])  # (n, L, ...)
+    with Freeze(agent):
+        post, _ = agent.wm.rssm.observe(agent.wm.encoder(obs), action)
+        start = {k: v.flatten(0, 1) for k, v in post.items()}  # (n*L, ...), not detached: φ learns through it
+        feats = imagine(agent.wm, agent.actor, start, horizon)
+        returns, weights = imagined_returns(agent.wm, agent.value, feats, gamma, lam)
+        return -(weights * returns).mean()
+
+
+class Addressing:
+    """The addressing model f_φ, its optimiser, and the embeddings D of the candidate chunks of M (Algorithm 2)."""
+
+    def __init__(self, obs_shape, action_size: int, args: Args, device):
+        self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth).to(device)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr)
+        self.method, self.device = args.method, device
+        self.stop_grad_x = args.address_stop_grad_x
+        if self.stop_grad_x is None:
+            self.stop_grad_x = args.method in ("rrama", "rbrama")
+        self.candidates = None  # (episode ids, starts) of the chunks embedded in D
+        self.D = None  # (N_c, U)
+
+    def embed(self, batch: dict):
+        return self.net(batch["obs"], batch["action"], batch["reward"])
+
+    def train(self, agent: Agent, x: dict, m_batch: dict, args: Args) -> dict:
+        """(a) of Algorithm 2: score m multitask chunks against each x_i, sample j, step φ on Eq. 1, 2 or 3."""
+        logits = address_logits(self.embed(x), self.embed(m_batch), self.stop_grad_x)  # (n, m)
+        if self.method == "vrama":
+            one_hot, index = straight_through_sample(logits)
+            loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda)
+        else:
+            index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
+            advantage = predicted_reward_sum(agent.wm, m_batch)[index]  # Eq. 2 (RRAMa)
+            if self.method == "rbrama":  # Eq. 3 (RbRAMa): the predicted reward sum of x_i as the baseline
+                advantage = advantage - predicted_reward_sum(agent.wm, x)
+            loss = reinforce_loss(logits, index, advantage, args.address_standardize)
+        grad_norm = optimizer_step(self.opt, loss, self.net.parameters(), args.address_grad_clip)
+        log_q = logits.detach().log_softmax(-1)
+        entropy = -(log_q.exp() * log_q).sum(-1).mean()
+        return {"addressing/loss": loss.detach(), "addressing/entropy": entropy,
+                "addressing/entropy_uniform": torch.tensor(np.log(logits.shape[-1])),
+                "addressing/grad_norm": grad_norm}
+
+    @torch.no_grad()
+    def refresh(self, multitask: Replay, seq_len: int, cap: int, rng, chunk_batch: int = 64):
+        """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks (once per C updates)."""
+        self.candidates = multitask.grid_ids(seq_len, cap, rng)
+        parts = []
+        for i in range(0, len(self.candidates[0]), chunk_batch):
+            ids = (self.candidates[0][i:i + chunk_batch], self.candidates[1][i:i + chunk_batch])
+            parts.append(self.embed(to_torch(multitask.gather(*ids, seq_len), self.device)))
+        self.D = torch.cat(parts, 0)  # (N_c, U)
+
+    @torch.no_grad()
+    def probs(self, x: dict):
+        """q̂(j | x_i) ∝ exp(f(x_i)ᵀ D_j) over the candidates: (n, N_c)."""
+        return (self.embed(x) @ self.D.T).softmax(-1)
+
+    def pick(self, x: dict):
+        """Candidate indices drawn from q̂ for each row of x: (n,) numpy."""
+        return torch.multinomial(self.probs(x), 1).squeeze(-1).cpu().numpy()
+
+
+def mix_batch(x_np: dict, m_np: dict) -> dict:
+    """Rows of the current chunks followed by rows of the multitask chunks."""
+    return {k: np.concatenate([x_np[k], m_np[k]], 0) for k in x_np}
+
+
+def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str):
+    """Heat map of q̂(j | x_i): rows = current chunks, columns = candidates sorted by task then stored return."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    order = np.lexsort((returns, np.array(tasks)))
+    fig, (ax, ax_ret) = plt.subplots(2, 1, figsize=(9, 4.5), sharex=True, height_ratios=[4, 1])
+    image = ax.imshow(probs[:, order], aspect="auto", interpolation="nearest", cmap="viridis")
+    fig.colorbar(image, ax=[ax, ax_ret], label="q̂(j | x_i)")
+    sorted_tasks = [tasks[i] for i in order]
+    for i in range(1, len(order)):  # task boundaries
+        if sorted_tasks[i] != sorted_tasks[i - 1]:
+            ax.axvline(i - 0.5, color="white", lw=1)
+            ax_ret.axvline(i - 0.5, color="gray", lw=1)
+    for task in dict.fromkeys(sorted_tasks):
+        idx = [i for i, t in enumerate(sorted_tasks) if t == task]
+        ax.text(np.mean(idx), -0.8, task, ha="center", va="bottom", fontsize=8)
+    ax.set_ylabel("current chunk x_i")
+    ax.set_title(title, pad=14)
+    ax_ret.plot(np.arange(len(order)), returns[order], lw=1)
+    ax_ret.set_ylabel("return")
+    ax_ret.set_xlabel("candidate chunk j (sorted by task, then stored episode return)")
+    return fig
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 7. Acting, logging, checkpoints, benchmark
+# ----------------------------------------------------------------------------------------------------------
+class Policy:
+    """Acts online: keeps the RSSM posterior of the current episode and picks actions from it."""
+
+    def __init__(self, agent: Agent, device):
+        self.agent, self.device = agent, device
+
+    def reset(self):
+        self.state, self.action = None, torch.zeros(1, self.agent.actor.action_size, device=self.device)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, explore_noise: Optional[float], rng: np.random.Generator) -> np.ndarray:
+        """explore_noise None = evaluation (the mode); else a sample plus Gaussian noise of that std."""
+        wm = self.agent.wm
+        embed = wm.encoder(preprocess_obs(obs[None, None], self.device))[:, 0]  # (1, E)
+        state = self.state if self.state is not None else wm.rssm.initial(1, self.device)
+        self.state = wm.rssm.obs_step(wm.rssm.img_step(state, self.action), wm.rssm.obs_embed(embed))
+        feat = wm.rssm.feat(self.state)
+        if explore_noise is None:
+            action = self.agent.actor.mode(feat)
+        else:
+            action = self.agent.actor(feat).sample()
+        action = action[0].cpu().numpy()
+        if explore_noise:
+            action = np.clip(action + rng.normal(0.0, explore_noise, action.shape), -1.0, 1.0)
+        self.action = torch.as_tensor(action, dtype=torch.float32, device=self.device)[None]
+        return action.astype(np.float32)
+
+
+def run_episode(env, act, seed: int, task: str, record: bool = False):
+    """Play one episode; act(obs) -> action (None for random actions). Returns the episode dict and frames."""
+    obs = env.reset(seed=seed)
+    episode = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
+    frames = [env.render()] if record else []
+    done, success = False, None  # success stays None for envs that do not report it
+    while not done:
+        action = act(obs)
+        obs, reward, terminated, truncated, info = env.step(action)
+        for key, value in zip(("obs", "action", "reward", "terminal"), (obs, action, reward, terminated)):
+            episode[key].append(value)
+        if "success" in info:
+            success = bool(success) or bool(info["success"])  # success at any step counts
+        if record:
+            frames.append(env.render())
+        done = terminated or truncated
+    episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None) for k, v in episode.items()}
+    episode.update({k: np.asarray(v) for k, v in env.extras().items()})
+    episode["task"] = np.asarray(task)
+    episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
+    if success is not None:
+        episode["success"] = np.asarray(success)
+    return episode, frames
+
+
+def episode_metrics(prefix: str, episodes: list) -> dict:
+    """Mean return (and success rate, where the env reports success) of finished episodes."""
+    metrics = {f"{prefix}/episodic_return": float(np.mean([float(ep["return"]) for ep in episodes]))}
+    if "success" in episodes[0]:
+        metrics[f"{prefix}/success_rate"] = float(np.mean([bool(ep["success"]) for ep in episodes]))
+    return metrics
+
+
+class Logger:
+    """TensorBoard + metrics.jsonl (+ W&B): one JSON line per log call, keys grouped charts/, losses/, eval/."""
+
+    def __init__(self, run_path: str, args: Args):
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(run_path)
+        self.jsonl = open(os.path.join(run_path, "metrics.jsonl"), "a")
+        self.wandb = None
+        if args.track:
+            try:
+                import wandb
+            except ImportError:
+                raise UsageError("--track needs wandb: pip install wandb") from None
+            self.wandb = wandb.init(project=args.wandb_project, config=vars(args), name=os.path.basename(run_path),
+                                    dir=run_path, resume="allow")
+
+    def log(self, step: int, metrics: dict):
+        metrics = {k: float(v) for k, v in metrics.items()}
+        for key, value in metrics.items():
+            self.writer.add_scalar(key, value, step)
+        self.jsonl.write(json.dumps({"step": step, **metrics}) + "\n")
+        self.jsonl.flush()
+        if self.wandb:
+            self.wandb.log(metrics, step=step)
+
+    def close(self):
+        self.writer.close()
+        self.jsonl.close()
+        if self.wandb:
+            self.wandb.finish()
+
+
+def save_checkpoint(path: str, agent: Agent, state: dict):
+    """Atomic like the episodes: a temp file, then a rename."""
+    payload = {"agent": agent.state_dict(), "optimizers": {k: o.state_dict() for k, o in agent.optimizers().items()},
+               "state": state, "rng": {"python": random.getstate(), "numpy": np.random.get_state(),
+                                       "torch": torch.get_rng_state()}}
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, agent: Agent) -> dict:
+    payload = torch.load(path, map_location=next(agent.parameters()).device, weights_only=False)
+    agent.load_state_dict(payload["agent"])
+    for name, opt in agent.optimizers().items():
+        opt.load_state_dict(payload["optimizers"][name])
+    random.setstate(payload["rng"]["python"])
+    np.random.set_state(payload["rng"]["numpy"])
+    torch.set_rng_state(payload["rng"]["torch"])
+    return payload["state"]
+
+
+def write_gif(path: str, frames, fps: int = 25):
+    import imageio.v2 as imageio
+
+    imageio.mimsave(path, [np.asarray(f, np.uint8) for f in frames], duration=1000 / fps, loop=0)
+
+
+@torch.no_grad()
+def open_loop_frames(wm: WorldModel, batch: dict, context: int = 5):
+    """Truth | model | error rows for up to 4 chunks: observe `context` frames, then imagine with true actions."""
+    batch = {k: v[:4] for k, v in batch.items()}
+    post, _ = wm.rssm.observe(wm.encoder(batch["obs"][:, :context]), batch["action"][:, :context])
+    start = {k: v[:, -1] for k, v in post.items()}
+    prior = wm.rssm.imagine_actions(start, batch["action"][:, context:])
+    model = torch.cat([wm.decoder(wm.rssm.feat(post)), wm.decoder(wm.rssm.feat(prior))], 1)  # (4, T, 3, H, W)
+    truth = batch["obs"]
+    grid = torch.cat([truth, model, (model - truth + 1) / 2 - 0.5], 3)  # rows stacked along height
+    grid = torch.cat(list(grid), 3)  # chunks side by side along width -> (T, 3, 3H, 4W)
+    return ((grid + 0.5).clamp(0, 1) * 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UsageError(f"--device {name!r} is not a torch device (auto, cpu, cuda, cuda:N)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UsageError(f"--device {name}: CUDA is not available on this machine")
+    return device
+
+
+def seed_everything(seed: int):
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, task: str = "synthetic") -> Replay:
+    """Random episodes for the benchmark: no environment needed."""
+    replay = Replay()
+    for _ in range(episodes):
+        shape = (length + 1, *obs_shape)
+        obs = rng.integers(0, 256, shape, dtype=np.uint8) if len(obs_shape) == 3 else rng.normal(size=shape)
+        replay.add({"obs": obs, "action": rng.uniform(-1, 1, (length + 1, action_size)).astype(np.float32),
+                    "reward": rng.uniform(0, 1, length + 1).astype(np.float32),
+                    "terminal": np.zeros(length + 1, bool), "task": task})
+    return replay
+
+
+def benchmark(args: Args):
+    """Seconds per full update (Algorithm 2: addressing + world model + actor + value) per method, at the paper's
+    size and a small size, on CPU and on CUDA when present. Synthetic episodes: no environment in the timing."""
+    unknown = set(args.benchmark_methods) - {"dreamer", "uniform", *ADDRESSED_METHODS}
+    if unknown:
+        raise UsageError(f"--benchmark-methods: unknown {sorted(unknown)}")
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    print(f"machine: {platform.machine()} {platform.processor() or ''} | {os.cpu_count()} CPUs | torch "
+          f"{torch.__version__} | threads {torch.get_num_threads()}"
+          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""), flush=True)
+    obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else (24,)
+    rng = np.random.default_rng(args.seed)
+    replay = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng, task="current")
+    multitask = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng, task="prior")
+    for episode in replay.episodes:
+        multitask.add(episode)
+    parts = ["world_model", "actor_critic", "addressing", "batch_sampling"]
+    print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "
+          + " ".join(f"{p:>14}" for p in parts), flush=True)
+    for device_name in devices:
+        device = torch.device(device_name)
+        for size, (n, length) in {"paper": (50, 50), "small": (16, 50)}.items():
+            reference = None
+            for method in args.benchmark_methods:
+                run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method)
+                agent = Agent(obs_shape, 6, run_args).to(device)
+                addressing = Addressing(obs_shape, 6, run_args, device) if method in ADDRESSED_METHODS else None
+                totals = dict.fromkeys(parts + ["total"], 0.0)
+                for i in range(args.benchmark_updates + 1):  # update 0 warms up (and refreshes D, once per C)
+                    if device.type == "cuda":
+                        torch.cuda.synchronize()
+                    t0 = time.perf_counter()
+                    out = update(agent, replay, multitask, addressing, run_args, rng, device, "current", i)
+                    if device.type == "cuda":
+                        torch.cuda.synchronize()
+                    if i > 0:
+                        totals["total"] += (time.perf_counter() - t0) / args.benchmark_updates
+                        for k in parts:
+                            totals[k] += out["timings"].get(k, 0.0) / args.benchmark_updates
+                reference = reference or totals["total"]
+                print(f"{device_name:<6} {size:<6} {n:>3} {length:>3} {method:<8} {totals['total']:>9.3f} "
+                      f"{totals['total'] / reference:>9.2f}x " + " ".join(f"{totals[p]:>14.3f}" for p in parts),
+                      flush=True)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 8. Training loop
+# ----------------------------------------------------------------------------------------------------------
+def setup_run(args: Args):
+    """Create (or reopen, with --resume) the run folder; returns (args, run_path)."""
+    if args.resume:
+        args_path = os.path.join(args.resume, "args.json")
+        if not os.path.isfile(args_path):
+            raise UsageError(f"--resume {args.resume}: no args.json there (not a run folder)")
+        with open(args_path) as f:
+            saved = json.load(f)
+        valid = {f.name for f in dataclasses.fields(Args)}
+        args = dataclasses.replace(Args(**{k: v for k, v in saved.items() if k in valid}), resume=args.resume,
+                                   device=args.device)
+        check_args(args)
+        return args, args.resume
+    env_name = "__".join(t.replace("/", "_") for t in task_list(args)[:1]) + ("_seq" if args.task_sequence else "")
+    run_name = f"{env_name}__{args.exp_name}__{args.method}__{args.seed}__{int(time.time())}"
+    run_path = os.path.join(args.run_dir, run_name)
+    try:
+        os.makedirs(run_path, exist_ok=True)
+        with open(os.path.join(run_path, "args.json"), "w") as f:
+            json.dump(dataclasses.asdict(args), f, indent=2)
+    except OSError as e:
+        raise UsageError(f"--run-dir {args.run_dir!r} is not writable ({e.strerror})") from None
+    return args, run_path
+
+
+def every(n: int, count: int) -> bool:
+    """True on every n-th count (count 0 included)."""
+    return count % n == 0
+
+
+def update(agent: Agent, replay: Replay, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
+           device, task_name: str, updates_done: int) -> dict:
+    """One update of Algorithm 2: (a) the addressing step, (b) the agent's step on a batch that, with
+    probability p, is β·n current chunks plus (1-β)·n chunks of M picked by q̂ (or uniformly for `uniform`)."""
+    n, seq_len = args.batch_size, args.seq_len
+    timings, metrics, picks = {}, {}, None
+    t0 = time.perf_counter()
+    x_np = replay.sample(n, seq_len, rng)  # x_i ~ M_τ
+    timings["batch_sampling"] = time.perf_counter() - t0
+    use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
+
+    if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
+        t0 = time.perf_counter()
+        if addressing.D is None or every(args.address_refresh, updates_done):
+            addressing.refresh(multitask, seq_len, args.address_candidates, rng)
+            metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
+        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
+        metrics.update(addressing.train(agent, to_torch(x_np, device), m_batch, args))
+        timings["addressing"] = time.perf_counter() - t0
+
+    batch_np, reward_mask, model_mask = x_np, None, None
+    keep = int(round(args.current_fraction * n))
+    if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
+        t0 = time.perf_counter()
+        borrow = n - keep
+        if addressing is None:
+            picks = multitask.sample_ids(borrow, seq_len, rng)
+        else:
+            j = addressing.pick(to_torch({k: v[:borrow] for k, v in x_np.items()}, device))  # j ~ q̂(j | x_i)
+            picks = (addressing.candidates[0][j], addressing.candidates[1][j])
+        batch_np = mix_batch({k: v[:keep] for k, v in x_np.items()}, multitask.gather(*picks, seq_len))
+        tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
+        reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
+        if not args.wm_on_addressed:
+            model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
+        timings["batch_sampling"] += time.perf_counter() - t0
+    out = train_step(agent, to_torch(batch_np, device), args, reward_mask, model_mask)
+    out["metrics"].update(metrics)
+    out["timings"].update(timings)
+    out["picks"] = picks
+    return out
+
+
+def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int) -> dict:
+    """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
+    picked = [e for p in picks for e in p[0]]
+    metrics = {"addressing/mixed_batches": len(picks) / updates}
+    if not picked:
+        return metrics
+    tasks = [multitask.tasks[e] for e in picked]
+    for task in sorted(set(multitask.tasks)):
+        metrics[f"addressing/pick_fraction/{task}"] = tasks.count(task) / len(tasks)
+    metrics["addressing/picked_return"] = float(np.mean([multitask.returns[e] for e in picked]))
+    pool = addressing.candidates[0] if addressing is not None and addressing.candidates is not None \
+        else np.arange(len(multitask))
+    metrics["addressing/candidate_return"] = float(np.mean([multitask.returns[e] for e in pool]))
+    return metrics
+
+
+def save_addressing(path: str, addressing: Addressing):
+    torch.save({"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict()}, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
+               addressing: Optional[Addressing], rng, address_path: str):
+    """Algorithm 2 on one task: a fresh agent, the shared M and f_φ; resumes from task_path when it has data."""
+    episode_dir = os.path.join(task_path, "episodes")
+    os.makedirs(episode_dir, exist_ok=True)
+    # the current task's replay M_τ: episodes already on disk count (a resumed run recovers its step count here)
+    replay = Replay()
+    for path in list_episode_files(episode_dir):
+        episode = load_episode(path)
+        replay.add(episode)
+        if args.method != "dreamer":
+            multitask.add(episode)  # M grows with every task's episodes (shared arrays, no copy)
+    env_steps = sum(len(ep["reward"]) - 1 for ep in replay.episodes) * args.action_repeat
+    if env_steps >= args.total_steps:
+        print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
+        return
+
+    env, eval_env = make_env(args, env_id, seed), make_env(args, env_id, seed + 10_000)
+    agent = Agent(env.obs_shape, env.action_size, args).to(device)
+    policy = Policy(agent, device)
+    n_params = sum(p.numel() for p in agent.parameters())
+    state = {"updates": 0, "next_eval": args.eval_every}
+    checkpoint_path = os.path.join(task_path, "checkpoint.pt")
+    if os.path.exists(checkpoint_path):
+        state = load_checkpoint(checkpoint_path, agent)
+        rng = np.random.default_rng([args.seed, len(replay)])  # fresh stream: resume is not bit-identical
+    logger = Logger(task_path, args)
+    for folder in (["videos"] if args.capture_video else []) + (["addressing"] if addressing else []):
+        os.makedirs(os.path.join(task_path, folder), exist_ok=True)
+    print(f"run: {task_path} | {env_id} ({args.obs_type}) | method {args.method} | device {device} | "
+          f"{n_params / 1e6:.2f}M parameters | {len(replay)} episodes on disk ({env_steps} steps) | "
+          f"multitask buffer {len(multitask)} episodes", flush=True)
+
+    from tqdm import tqdm
+
+    progress = tqdm(total=args.total_steps, initial=min(env_steps, args.total_steps), unit="step", dynamic_ncols=True,
+                    disable=None)
+    start_time, start_steps = time.time(), env_steps
+    try:
+        while env_steps < args.total_steps:
+            # (a) C updates on chunks of the replay (mixed with M), once there is something to learn from
+            if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
+                sums, timings, picks = {}, {}, []
+                for _ in range(args.updates_per_episode):
+                    out = update(agent, replay, multitask, addressing, args, rng, device, env.task_name,
+                                 state["updates"])
+                    state["updates"] += 1
+                    for k, v in out["metrics"].items():
+                        sums[k] = sums.get(k, 0.0) + v.detach()
+                    for k, v in out["timings"].items():
+                        timings[k] = timings.get(k, 0.0) + v
+                    if out["picks"] is not None:
+                        picks.append(out["picks"])
+                metrics = {k: v.item() / args.updates_per_episode for k, v in sums.items()}
+                if "addressing/refresh_seconds" in sums:  # a sum of refreshes, not a per-update mean
+                    metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
+                metrics.update({f"time/{k}_per_update": v / args.updates_per_episode for k, v in timings.items()})
+                if args.method != "dreamer":
+                    metrics.update(picks_metrics(picks, multitask, addressing, args.updates_per_episode))
+                metrics["charts/updates"] = state["updates"]
+                logger.log(env_steps, metrics)
+                save_checkpoint(checkpoint_path, agent, state)
+                if addressing is not None:
+                    save_addressing(address_path, addressing)
+                if args.capture_video:
+                    batch = to_torch(replay.sample(4, args.seq_len, rng), device)
+                    write_gif(os.path.join(task_path, "videos", f"openloop_{env_steps:08d}.gif"),
+                              open_loop_frames(agent.wm, batch))
+                if addressing is not None and addressing.D is not None and every(args.address_plot_every, len(replay)):
+                    import matplotlib.pyplot as plt
+
+                    x = to_torch(replay.sample(16, args.seq_len, rng), device)
+                    cand_episodes = addressing.candidates[0]
+                    fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
+                                            np.array([multitask.returns[e] for e in cand_episodes]),
+                                            f"{args.method} on {env.task_name}, step {env_steps}")
+                    fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
+                    logger.writer.add_figure("addressing/probabilities", fig, env_steps)
+                    plt.close(fig)
+
+            # (b) evaluation without exploration noise, every eval_every environment steps
+            if args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes:
+                episodes = []
+                for i in range(args.eval_episodes):
+                    policy.reset()
+                    episode, frames = run_episode(eval_env, lambda o: policy.act(o, None, rng),
+                                                  seed=seed * 1_000_003 + 7919 * env_steps + i,
+                                                  task=env.task_name, record=args.capture_video and i == 0)
+                    episodes.append(episode)
+                    if frames:
+                        write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
+                eval_metrics = episode_metrics("eval", episodes)
+                logger.log(env_steps, eval_metrics)
+                progress.write(f"step {env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
+                sys.stdout.flush()
+                while state["next_eval"] <= env_steps:
+                    state["next_eval"] += args.eval_every
+
+            # (c) collect one episode (random actions while prefilling) and store it atomically
+            if len(replay) < args.prefill_episodes:
+                act = lambda o: rng.uniform(-1, 1, env.action_size).astype(np.float32)  # noqa: E731
+            else:
+                policy.reset()
+                act = lambda o: policy.act(o, args.expl_noise, rng)  # noqa: E731
+            episode, _ = run_episode(env, act, seed=seed * 1_000_003 + len(replay), task=env.task_name)
+            save_episode(episode_dir, len(replay), episode)
+            replay.add(episode)
+            if args.method != "dreamer":
+                multitask.add(episode)
+            steps = (len(episode["reward"]) - 1) * args.action_repeat
+            env_steps += steps
+            progress.update(steps)
+            sps = (env_steps - start_steps) / (time.time() - start_time)
+            logger.log(env_steps, {**episode_metrics("charts", [episode]), "charts/episodic_length": steps,
+                                   "charts/SPS": sps, "charts/episodes": len(replay)})
+            progress.set_postfix(ret=f"{float(episode['return']):.1f}", sps=f"{sps:.1f}")
+            if progress.disable:  # no terminal (nohup, CI): one plain line per episode instead of the bar
+                print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "
+                      f"{float(episode['return']):.1f} | {sps:.1f} steps/s", flush=True)
+    finally:
+        progress.close()
+        logger.close()
+        env.close()
+        eval_env.close()
+
+
+def main(args: Args):
+    args = resolve_defaults(args)
+    check_args(args)
+    if args.benchmark:
+        return benchmark(args)
+    device = resolve_device(args.device)
+    args, run_path = setup_run(args)
+    if args.collect_expert:
+        return collect_expert_episodes(args, run_path)
+    seed_everything(args.seed)
+    rng = np.random.default_rng(args.seed)
+    tasks = task_list(args)
+    probe = make_env(args, tasks[0], args.seed)
+    obs_shape, action_size = probe.obs_shape, probe.action_size
+    probe.close()
+
+    # the multitask buffer M: prior episodes (the same K are drawn again on resume: same seed, same files)
+    multitask = Replay()
+    if args.prior_dirs:
+        for episode in load_prior_episodes(args.prior_dirs, args.prior_min_return, args.prior_max_episodes,
+                                           obs_shape, action_size, rng):
+            multitask.add(episode)
+        counts = {t: multitask.tasks.count(t) for t in sorted(set(multitask.tasks))}
+        print(f"multitask buffer: {len(multitask)} prior episodes {counts}, "
+              f"{multitask.memory_bytes() / 2**30:.2f} GiB in memory", flush=True)
+    addressing = None
+    address_path = os.path.join(run_path, "address.pt")
+    if args.method in ADDRESSED_METHODS:
+        addressing = Addressing(obs_shape, action_size, args, device)
+        if os.path.exists(address_path):
+            saved = torch.load(address_path, map_location=device)
+            addressing.net.load_state_dict(saved["net"])
+            addressing.opt.load_state_dict(saved["opt"])
+
+    # Algorithm 1: tasks in order; the agent restarts per task, M and f_φ carry over
+    for k, env_id in enumerate(tasks):
+        task_path = run_path if len(tasks) == 1 else os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
+        train_task(args, env_id, args.seed + 1000 * k, task_path, device, multitask, addressing, rng, address_path)
+
+
+if __name__ == "__main__":
+    try:
+        main(tyro.cli(Args))
+    except UsageError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
