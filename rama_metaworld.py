@@ -1087,8 +1087,10 @@ def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title
 
     order = np.lexsort((returns, np.array(tasks)))
     fig, (ax, ax_ret) = plt.subplots(2, 1, figsize=(9, 4.5), sharex=True, height_ratios=[4, 1])
-    image = ax.imshow(probs[:, order], aspect="auto", interpolation="nearest", cmap="viridis")
-    fig.colorbar(image, ax=[ax, ax_ret], label="q̂(j | x_i)")
+    # log-ratio to the uniform distribution: red = picked more often than uniform, blue = less
+    ratio = np.log10(np.maximum(probs[:, order] * probs.shape[1], 1e-12))
+    image = ax.imshow(ratio, aspect="auto", interpolation="nearest", cmap="RdBu_r", vmin=-2, vmax=2)
+    fig.colorbar(image, ax=[ax, ax_ret], label="log10(q̂(j | x_i) / uniform)")
     sorted_tasks = [tasks[i] for i in order]
     for i in range(1, len(order)):  # task boundaries
         if sorted_tasks[i] != sorted_tasks[i - 1]:
