@@ -10,20 +10,13 @@ import time
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import ROOT, TINY, run_script
+
 SCRIPT = os.path.join(ROOT, "rama_dreamer.py")
-# tiny sizes: 50-step episodes (100 env steps with action repeat 2), 4 episodes, 2 updates each
-TINY = ["--total-steps", "400", "--time-limit", "100", "--batch-size", "3", "--seq-len", "8",
-        "--updates-per-episode", "2", "--cnn-depth", "4", "--deter-size", "16", "--stoch-size", "4",
-        "--hidden-size", "16", "--mlp-units", "16", "--horizon", "3", "--eval-every", "200", "--device", "cpu"]
 
 
 def run(*flags, timeout=300, check=True):
-    proc = subprocess.run([sys.executable, SCRIPT, *flags], capture_output=True, text=True, timeout=timeout,
-                          cwd=ROOT, env={**os.environ, "MUJOCO_GL": "egl"})
-    if check:
-        assert proc.returncode == 0, proc.stderr[-3000:]
-    return proc
+    return run_script("rama_dreamer.py", *flags, check=check, timeout=timeout)
 
 
 def only_run(run_dir):
@@ -39,7 +32,8 @@ def read_metrics(run_path):
 
 @pytest.mark.parametrize("obs_type", ["pixels", "state"])
 def test_tiny_run_writes_a_complete_run_folder(tmp_path, obs_type):
-    flags = ["--env-id", "dmc/walker-walk", "--obs-type", obs_type, "--run-dir", str(tmp_path), *TINY]
+    flags = ["--env-id", "dmc/walker-walk", "--obs-type", obs_type, "--run-dir", str(tmp_path), *TINY,
+             "--total-steps", "400"]
     run(*flags, *(["--capture-video"] if obs_type == "pixels" else []))
     run_path = only_run(tmp_path)
     assert os.path.basename(run_path).startswith("dmc_walker-walk__rama_dreamer__dreamer__1__")

@@ -65,7 +65,7 @@ def test_rewards_telescope_and_truncate_at_500(task):
     # a random start, then the expert, so that the object really moves and rewards are not all zero
     policy = lambda e: e.action_space.sample() if e._steps < 50 else kitchen_env.scripted_action(e)  # noqa: E731
     _, info = env.reset(seed=1)
-    start, total, rewards = info["distance"], 0.0, []
+    start, rewards = info["distance"], []
     for step in range(500):
         _, reward, terminated, truncated, info = env.step(policy(env))
         rewards.append(reward)

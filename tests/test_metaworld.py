@@ -3,15 +3,12 @@ and few-step runs of every method with a tiny prior buffer."""
 import glob
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+from helpers import TINY, run_script
 from rama_metaworld import MetaWorldEnv, UsageError, expert_action, make_env_spec, task_vectors
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="module")
@@ -164,19 +161,8 @@ def test_expert_acts_from_pixels_env(push):
     assert push.last_success  # the pixel env keeps the state the scripted policy needs
 
 
-TINY = ["--total-steps", "300", "--time-limit", "100", "--batch-size", "4", "--seq-len", "8",
-        "--updates-per-episode", "2", "--cnn-depth", "4", "--deter-size", "16", "--stoch-size", "4",
-        "--hidden-size", "16", "--mlp-units", "16", "--horizon", "3", "--eval-every", "200", "--device", "cpu",
-        "--address-units", "16", "--address-cnn-depth", "4", "--address-batch", "5", "--address-plot-every", "2",
-        "--address-prob", "1.0"]
-
-
 def run(*flags, check=True):
-    proc = subprocess.run([sys.executable, os.path.join(ROOT, "rama_metaworld.py"), *flags], capture_output=True,
-                          text=True, timeout=300, cwd=ROOT)
-    if check:
-        assert proc.returncode == 0, proc.stderr[-3000:]
-    return proc
+    return run_script("rama_metaworld.py", *flags, check=check)
 
 
 @pytest.fixture(scope="module")

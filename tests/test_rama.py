@@ -2,17 +2,14 @@
 import glob
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
 
 import rama_dreamer as rd
+from helpers import TINY, run_script
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCRIPT = os.path.join(ROOT, "rama_dreamer.py")
 SMALL = dict(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, batch_size=4, seq_len=5,
              address_units=8, address_cnn_depth=2, address_batch=6)
 
@@ -187,18 +184,8 @@ def test_prior_loading_filters_subsamples_and_refuses_bad_folders(tmp_path):
         rd.load_prior_episodes([str(tmp_path / "run")], 1e9, 10, (24,), 6, rng)
 
 
-TINY = ["--total-steps", "300", "--time-limit", "100", "--batch-size", "4", "--seq-len", "8",
-        "--updates-per-episode", "2", "--cnn-depth", "4", "--deter-size", "16", "--stoch-size", "4",
-        "--hidden-size", "16", "--mlp-units", "16", "--horizon", "3", "--eval-every", "200", "--device", "cpu",
-        "--address-units", "16", "--address-cnn-depth", "4", "--address-batch", "5", "--address-plot-every", "2",
-        "--address-prob", "1.0"]
-
-
 def run(*flags, check=True):
-    proc = subprocess.run([sys.executable, SCRIPT, *flags], capture_output=True, text=True, timeout=300, cwd=ROOT)
-    if check:
-        assert proc.returncode == 0, proc.stderr[-3000:]
-    return proc
+    return run_script("rama_dreamer.py", *flags, check=check)
 
 
 def metric_keys(run_path):

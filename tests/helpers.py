@@ -1,0 +1,21 @@
+"""Shared by the subprocess tests: tiny sizes and a runner for the experiment scripts."""
+import os
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# tiny sizes: 50-step episodes (100 env steps with action repeat 2), 3 episodes, 2 updates each, small networks
+TINY = ["--total-steps", "300", "--time-limit", "100", "--batch-size", "4", "--seq-len", "8",
+        "--updates-per-episode", "2", "--cnn-depth", "4", "--deter-size", "16", "--stoch-size", "4",
+        "--hidden-size", "16", "--mlp-units", "16", "--horizon", "3", "--eval-every", "200", "--device", "cpu",
+        "--address-units", "16", "--address-cnn-depth", "4", "--address-batch", "5", "--address-plot-every", "2",
+        "--address-prob", "1.0"]
+
+
+def run_script(script: str, *flags, check=True, timeout=300):
+    """Run ROOT/script with flags in a subprocess; with check, fail the test on a non-zero exit."""
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, script), *flags], capture_output=True, text=True,
+                          timeout=timeout, cwd=ROOT)
+    if check:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
