@@ -512,12 +512,15 @@ class Replay:
     def __len__(self):
         return len(self.episodes)
 
+    def _starts_per_episode(self, seq_len: int):
+        return np.maximum(self._lengths - seq_len + 1, 0)  # (E,) chunk starts each episode offers
+
     def num_chunks(self, seq_len: int) -> int:
-        return int(np.maximum(self._lengths - seq_len + 1, 0).sum())
+        return int(self._starts_per_episode(seq_len).sum())
 
     def sample_ids(self, n: int, seq_len: int, rng: np.random.Generator):
         """n (episode, start) pairs, uniform over all chunks of length seq_len."""
-        starts_per_episode = np.maximum(self._lengths - seq_len + 1, 0)  # (E,)
+        starts_per_episode = self._starts_per_episode(seq_len)
         total = starts_per_episode.sum()
         if total == 0:
             raise ValueError(f"no episode has {seq_len} steps")
@@ -1073,9 +1076,9 @@ class Addressing:
         return torch.multinomial(self.probs(x), 1).squeeze(-1).cpu().numpy()
 
 
-def mix_batch(x_np: dict, m_np: dict) -> dict:
-    """Rows of the current chunks followed by rows of the multitask chunks."""
-    return {k: np.concatenate([x_np[k], m_np[k]], 0) for k in x_np}
+def mix_batch(x: dict, m_batch: dict) -> dict:
+    """Rows of the current chunks followed by rows of the multitask chunks (torch dicts of (B, T, ...))."""
+    return {k: torch.cat([x[k], m_batch[k]], 0) for k in x}
 
 
 def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str):
@@ -1359,7 +1362,7 @@ def update(agent: Agent, replay: Replay, multitask: Replay, addressing: Optional
     n, seq_len = args.batch_size, args.seq_len
     timings, metrics, picks = {}, {}, None
     t0 = time.perf_counter()
-    x_np = replay.sample(n, seq_len, rng)  # x_i ~ M_τ
+    x = to_torch(replay.sample(n, seq_len, rng), device)  # x_i ~ M_τ, converted once for every use below
     timings["batch_sampling"] = time.perf_counter() - t0
     use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
 
@@ -1369,10 +1372,10 @@ def update(agent: Agent, replay: Replay, multitask: Replay, addressing: Optional
             addressing.refresh(multitask, seq_len, args.address_candidates, rng)
             metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
         m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
-        metrics.update(addressing.train(agent, to_torch(x_np, device), m_batch, args))
+        metrics.update(addressing.train(agent, x, m_batch, args))
         timings["addressing"] = time.perf_counter() - t0
 
-    batch_np, reward_mask, model_mask = x_np, None, None
+    batch, reward_mask, model_mask = x, None, None
     keep = int(round(args.current_fraction * n))
     if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
         t0 = time.perf_counter()
@@ -1380,15 +1383,15 @@ def update(agent: Agent, replay: Replay, multitask: Replay, addressing: Optional
         if addressing is None:
             picks = multitask.sample_ids(borrow, seq_len, rng)
         else:
-            j = addressing.pick(to_torch({k: v[:borrow] for k, v in x_np.items()}, device))  # j ~ q̂(j | x_i)
+            j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i)
             picks = (addressing.candidates[0][j], addressing.candidates[1][j])
-        batch_np = mix_batch({k: v[:keep] for k, v in x_np.items()}, multitask.gather(*picks, seq_len))
+        batch = mix_batch({k: v[:keep] for k, v in x.items()}, to_torch(multitask.gather(*picks, seq_len), device))
         tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
         reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
         if not args.wm_on_addressed:
             model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
         timings["batch_sampling"] += time.perf_counter() - t0
-    out = train_step(agent, to_torch(batch_np, device), args, reward_mask, model_mask)
+    out = train_step(agent, batch, args, reward_mask, model_mask)
     out["metrics"].update(metrics)
     out["timings"].update(timings)
     out["picks"] = picks
