@@ -40,9 +40,11 @@ import platform
 import random
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal, Optional, Tuple
 
+import gymnasium
 import numpy as np
 import torch
 import torch.nn as nn
@@ -97,6 +99,23 @@ class Args:
     """timed updates per benchmark setting (after one warm-up update)"""
     benchmark_methods: Tuple[str, ...] = ("dreamer", "uniform", "rrama", "vrama", "rbrama")
     """methods the benchmark times"""
+    benchmark_sizes: Tuple[Literal["paper", "small"], ...] = ("paper", "small")
+    """sizes the benchmark times: paper (n=50, L=50), small (n=16, L=50)"""
+    benchmark_collection: bool = True
+    """the benchmark also times collection (env steps per second, 1 env and --num-envs envs, --env-id)"""
+
+    # Speed (none of these changes what is learned, up to floating-point rounding)
+    precision: Literal["fp32", "bf16"] = "fp32"
+    """`bf16`: conv stacks and the hidden layers of the MLPs run in bfloat16 autocast; the RSSM recurrence, the
+    output layers, the losses and the optimiser state stay fp32"""
+    channels_last: bool = True
+    """keep conv weights and activations in channels-last memory layout (faster convs on CPU and GPU)"""
+    compile: bool = False
+    """torch.compile the RSSM steps and the heads (worth it on CUDA; the first updates pay the compile time)"""
+    prefetch: bool = True
+    """sample (and pin) the next batch in a background thread while the current update trains"""
+    num_envs: int = 1
+    """environments collecting episodes in parallel (subprocesses through gymnasium's AsyncVectorEnv when > 1)"""
 
     # Environment
     action_repeat: int = 2
@@ -211,7 +230,8 @@ def check_args(args: Args) -> None:
     positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
                 "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
                 "prefill_episodes", "benchmark_updates", "prior_max_episodes", "address_batch", "address_units",
-                "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every", "num_tasks"]
+                "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every", "num_tasks",
+                "num_envs"]
     for name in positive:
         if getattr(args, name) <= 0:
             raise UsageError(f"--{name.replace('_', '-')} must be > 0 (got {getattr(args, name)})")
@@ -551,6 +571,37 @@ class Replay:
         return episode_ids, starts
 
 
+class ChunkSampler:
+    """The current-task chunks x of the coming updates (--prefetch: batch k+1 is sampled, and pinned for CUDA, in a
+    background thread while update k trains). Its own random stream: the same batches with or without prefetch."""
+
+    def __init__(self, replay: Replay, n: int, seq_len: int, rng: np.random.Generator, device, prefetch: bool):
+        self.replay, self.n, self.seq_len, self.rng, self.device = replay, n, seq_len, rng, torch.device(device)
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="prefetch") if prefetch else None
+
+    def _sample(self) -> dict:
+        batch = {k: torch.from_numpy(v) for k, v in self.replay.sample(self.n, self.seq_len, self.rng).items()}
+        if self.device.type == "cuda":  # page-locked memory: the copy to the GPU runs asynchronously
+            batch = {k: v.pin_memory() for k, v in batch.items()}
+        return batch
+
+    def batches(self, count: int):
+        """Yields (x on the device, seconds the caller waited for it) `count` times; the replay must not change
+        while the generator runs (the training loop adds episodes only between rounds of updates)."""
+        pending = self.pool.submit(self._sample) if self.pool else None
+        for i in range(count):
+            t0 = time.perf_counter()
+            batch = pending.result() if self.pool else self._sample()
+            if self.pool and i + 1 < count:
+                pending = self.pool.submit(self._sample)
+            x = to_torch(batch, self.device)
+            yield x, time.perf_counter() - t0
+
+    def close(self):
+        if self.pool:
+            self.pool.shutdown()
+
+
 def episode_folders(directory: str) -> list:
     """Where a run keeps episodes: DIR itself, DIR/episodes, or DIR/*/episodes (a --task-sequence run)."""
     for pattern in ("", "episodes", os.path.join("*", "episodes")):
@@ -593,16 +644,18 @@ def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_s
 
 
 def preprocess_obs(obs, device):
-    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]."""
-    obs = torch.as_tensor(obs, device=device)  # uint8 crosses to the device: 4x less to copy
+    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5].
+
+    The permuted image is channels-last in memory already, which is the layout the conv stacks want."""
+    obs = torch.as_tensor(obs).to(device, non_blocking=True)  # uint8 crosses to the device: 4x less to copy
     if obs.dtype == torch.uint8:
         return obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5)
     return obs.float()
 
 
 def to_torch(batch: dict, device) -> dict:
-    """numpy chunks (B, T, ...) -> float torch tensors on device (terminal stays bool)."""
-    out = {k: torch.as_tensor(v, device=device) for k, v in batch.items() if k != "obs"}
+    """numpy (or pinned torch) chunks (B, T, ...) -> float torch tensors on device (terminal stays bool)."""
+    out = {k: torch.as_tensor(v).to(device, non_blocking=True) for k, v in batch.items() if k != "obs"}
     out["obs"] = preprocess_obs(batch["obs"], device)
     out["action"], out["reward"] = out["action"].float(), out["reward"].float()
     return out
@@ -611,12 +664,24 @@ def to_torch(batch: dict, device) -> dict:
 # ----------------------------------------------------------------------------------------------------------
 # 5. Networks
 # ----------------------------------------------------------------------------------------------------------
-def mlp(in_size: int, units: int, layers: int, out_size: int) -> nn.Sequential:
-    modules = []
-    for _ in range(layers):
-        modules += [nn.Linear(in_size, units), nn.ELU()]
-        in_size = units
-    return nn.Sequential(*modules, nn.Linear(in_size, out_size))
+class MLP(nn.Module):
+    """ELU hidden layers then a linear output: (..., in) -> (..., out). With --precision bf16 the hidden layers run
+    in bfloat16 autocast; the output layer stays fp32 (a value of ~100 in bf16 would be off by up to 0.5)."""
+
+    bf16 = False
+
+    def __init__(self, in_size: int, units: int, layers: int, out_size: int):
+        super().__init__()
+        hidden = []
+        for _ in range(layers):
+            hidden += [nn.Linear(in_size, units), nn.ELU()]
+            in_size = units
+        self.hidden, self.out = nn.Sequential(*hidden), nn.Linear(in_size, out_size)
+
+    def forward(self, x):
+        with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16):
+            x = self.hidden(x)
+        return self.out(x.float())
 
 
 def conv_sizes(size: int, layers: int = 4) -> list:
@@ -630,6 +695,8 @@ def conv_sizes(size: int, layers: int = 4) -> list:
 class ConvEncoder(nn.Module):
     """Four convs (kernel 4, stride 2, depths 1,2,4,8 x depth): (N, 3, H, W) -> (N, embed_size)."""
 
+    bf16, channels_last = False, False  # set by set_speed_options (--precision, --channels-last)
+
     def __init__(self, obs_shape, depth: int):
         super().__init__()
         height, width, channels = obs_shape
@@ -641,11 +708,34 @@ class ConvEncoder(nn.Module):
         self.embed_size = in_ch * conv_sizes(height)[-1] * conv_sizes(width)[-1]
 
     def forward(self, obs):  # (B, T, 3, H, W) -> (B, T, E)
-        return self.net(obs.flatten(0, 1)).unflatten(0, obs.shape[:2])
+        x = obs.flatten(0, 1)  # (B*T, 3, H, W)
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16):
+            x = self.net(x)
+        return x.float().unflatten(0, obs.shape[:2])
+
+
+class UpConv(nn.ConvTranspose2d):
+    """Transposed conv (kernel 4, stride 2) whose output padding is added as a border of bias: the rows and columns
+    it adds receive no input, and a plain transposed conv plus a pad runs about 2x faster on CPU than oneDNN's
+    padded one. Same parameters and same output as nn.ConvTranspose2d(in_ch, out_ch, 4, 2, output_padding=pad)."""
+
+    def __init__(self, in_ch: int, out_ch: int, pad):
+        super().__init__(in_ch, out_ch, 4, 2)
+        self.pad = tuple(pad)  # (rows, cols) added at the bottom and at the right
+
+    def forward(self, x):
+        if not any(self.pad):
+            return super().forward(x)
+        x = F.pad(F.conv_transpose2d(x, self.weight, None, 2), (0, self.pad[1], 0, self.pad[0]))
+        return x + self.bias.to(x.dtype)[:, None, None]
 
 
 class ConvDecoder(nn.Module):
     """Mirror of the encoder: features -> mean image (B, T, 3, H, W); output paddings land on H, W exactly."""
+
+    bf16, channels_last = False, False  # set by set_speed_options (--precision, --channels-last)
 
     def __init__(self, feat_size: int, obs_shape, depth: int):
         super().__init__()
@@ -657,13 +747,17 @@ class ConvDecoder(nn.Module):
         for i in range(4):  # sizes go hs[4] -> hs[3] -> ... -> hs[0]
             out_ch = channels if i == 3 else depth * 2 ** (2 - i)
             pad = (hs[3 - i] - ((hs[4 - i] - 1) * 2 + 4), ws[3 - i] - ((ws[4 - i] - 1) * 2 + 4))
-            layers += [nn.ConvTranspose2d(in_ch, out_ch, 4, 2, output_padding=pad)] + ([nn.ReLU()] if i < 3 else [])
+            layers += [UpConv(in_ch, out_ch, pad)] + ([nn.ReLU()] if i < 3 else [])
             in_ch = out_ch
         self.net = nn.Sequential(*layers)
 
     def forward(self, feat):  # (B, T, F) -> (B, T, 3, H, W)
-        x = self.linear(feat.flatten(0, 1)).view(-1, *self._start)
-        return self.net(x).unflatten(0, feat.shape[:2])
+        with torch.autocast(feat.device.type, torch.bfloat16, enabled=self.bf16):
+            x = self.linear(feat.flatten(0, 1)).view(-1, *self._start)  # (B*T, 8*depth, h, w)
+            if self.channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
+            x = self.net(x)
+        return x.float().unflatten(0, feat.shape[:2])
 
 
 class MLPEncoder(nn.Module):
@@ -671,7 +765,7 @@ class MLPEncoder(nn.Module):
 
     def __init__(self, obs_size: int, units: int):
         super().__init__()
-        self.net, self.embed_size = nn.Sequential(mlp(obs_size, units, 2, units), nn.ELU()), units
+        self.net, self.embed_size = nn.Sequential(MLP(obs_size, units, 2, units), nn.ELU()), units
 
     def forward(self, obs):
         return self.net(obs)
@@ -680,10 +774,21 @@ class MLPEncoder(nn.Module):
 class MLPDecoder(nn.Module):
     def __init__(self, feat_size: int, obs_size: int, units: int):
         super().__init__()
-        self.net = mlp(feat_size, units, 2, obs_size)
+        self.net = MLP(feat_size, units, 2, obs_size)
 
     def forward(self, feat):
         return self.net(feat)
+
+
+def set_speed_options(module: nn.Module, precision: str, channels_last: bool) -> nn.Module:
+    """--precision and --channels-last for every conv stack and MLP inside module (the RSSM itself stays fp32)."""
+    for m in module.modules():
+        if isinstance(m, (ConvEncoder, ConvDecoder, MLP)):
+            m.bf16 = precision == "bf16"
+        if isinstance(m, (ConvEncoder, ConvDecoder)) and channels_last:
+            m.channels_last = True
+            m.to(memory_format=torch.channels_last)  # conv weights (4-D) only
+    return module
 
 
 class RSSM(nn.Module):
@@ -770,7 +875,7 @@ class WorldModel(nn.Module):
             self.decoder = ConvDecoder(feat, obs_shape, args.cnn_depth)
         else:
             self.decoder = MLPDecoder(feat, obs_shape[0], args.mlp_units)
-        self.reward = mlp(feat, args.mlp_units, 2, 1)
+        self.reward = MLP(feat, args.mlp_units, 2, 1)
 
 
 class Actor(nn.Module):
@@ -778,7 +883,7 @@ class Actor(nn.Module):
 
     def __init__(self, feat_size, action_size, units, init_std=5.0, min_std=1e-4, mean_scale=5.0):
         super().__init__()
-        self.net = mlp(feat_size, units, 4, 2 * action_size)
+        self.net = MLP(feat_size, units, 4, 2 * action_size)
         self.action_size = action_size
         self.init_std, self.min_std, self.mean_scale = init_std, min_std, mean_scale
 
@@ -890,14 +995,14 @@ def imagine(wm: WorldModel, actor: Actor, start: dict, horizon: int):
 
 
 def imagined_returns(wm: WorldModel, value_net: nn.Module, feats, gamma: float, lam: float):
-    """Rewards and values along imagined features (H, N, F) -> λ-returns (H-1, N) and their weights."""
+    """Rewards and values along imagined features (H, N, F) -> λ-returns (H-1, N), their weights, values (H, N)."""
     reward = wm.reward(feats).squeeze(-1)  # (H, N)
     value = value_net(feats).squeeze(-1)  # (H, N)
     pcont = torch.full_like(reward, gamma)
     returns = lambda_return(reward[:-1], value[:-1], pcont[:-1], value[-1], lam)  # (H-1, N)
     # weight of step t = γ^t: later imagined steps matter less
     weights = torch.cumprod(torch.cat([torch.ones_like(pcont[:1]), pcont[:-2]], 0), 0).detach()  # (H-1, N)
-    return returns, weights
+    return returns, weights, value
 
 
 def flatten_states(states: dict) -> dict:
@@ -920,9 +1025,11 @@ class Freeze:
             p.requires_grad_(True)
 
 
-def optimizer_step(optimizer, loss, params, clip: float):
+def optimizer_step(optimizer, loss, params, clip: float, retain_graph: bool = False):
+    """Backpropagate into `params` only (no gradient is computed for anything else the loss depends on), clip, step."""
+    params = list(params)
     optimizer.zero_grad(set_to_none=True)
-    loss.backward()
+    loss.backward(inputs=params, retain_graph=retain_graph)
     norm = nn.utils.clip_grad_norm_(params, clip)
     optimizer.step()
     return norm
@@ -937,7 +1044,14 @@ class Agent(nn.Module):
         feat = self.wm.rssm.feat_size
         self.actor = Actor(feat, action_size, args.mlp_units, args.actor_init_std, args.actor_min_std,
                            args.actor_mean_scale)
-        self.value = mlp(feat, args.mlp_units, 3, 1)
+        self.value = MLP(feat, args.mlp_units, 3, 1)
+        set_speed_options(self, args.precision, args.channels_last)
+        if args.compile:  # the hot loops: 50 posterior steps per chunk, 15 imagination steps per start
+            import torch._functorch.config as functorch_config
+
+            functorch_config.donated_buffer = False  # the actor's backward retains the graph for the value's
+            self.wm.rssm.img_step = torch.compile(self.wm.rssm.img_step)
+            self.wm.rssm.obs_step = torch.compile(self.wm.rssm.obs_step)
         self.model_opt = torch.optim.Adam(self.wm.parameters(), lr=args.model_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr)
         self.value_opt = torch.optim.Adam(self.value.parameters(), lr=args.value_lr)
@@ -955,15 +1069,15 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     timings["world_model"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    with Freeze(agent.wm, agent.value):  # actor gradients flow through the model and value, but train neither
+    with Freeze(agent.wm):  # actor gradients flow through the model, but do not train it
         feats = imagine(agent.wm, agent.actor, flatten_states(post), args.horizon)  # (H, B*T, F)
-        returns, weights = imagined_returns(agent.wm, agent.value, feats, args.gamma, args.return_lambda)
-        actor_loss = -(weights * returns).mean()
+    # one value pass serves both losses: the actor's backward reaches the actor only, the value's the value only
+    returns, weights, value = imagined_returns(agent.wm, agent.value, feats, args.gamma, args.return_lambda)
+    actor_loss = -(weights * returns).mean()
     metrics["losses/actor"] = actor_loss
     metrics["losses/actor_grad_norm"] = optimizer_step(agent.actor_opt, actor_loss, agent.actor.parameters(),
-                                                       args.grad_clip)
-    value_pred = agent.value(feats[:-1].detach()).squeeze(-1)  # (H-1, B*T)
-    value_loss = -(weights * gaussian_loglik(value_pred, returns.detach(), 0)).mean()
+                                                       args.grad_clip, retain_graph=True)
+    value_loss = -(weights * gaussian_loglik(value[:-1], returns.detach(), 0)).mean()  # (H-1, B*T) terms
     metrics["losses/value"] = value_loss
     metrics["losses/value_grad_norm"] = optimizer_step(agent.value_opt, value_loss, agent.value.parameters(),
                                                        args.grad_clip)
@@ -1017,7 +1131,7 @@ def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float,
         post, _ = agent.wm.rssm.observe(agent.wm.encoder(obs), action)
         start = {k: v.flatten(0, 1) for k, v in post.items()}  # (n*L, ...), not detached: φ learns through it
         feats = imagine(agent.wm, agent.actor, start, horizon)
-        returns, weights = imagined_returns(agent.wm, agent.value, feats, gamma, lam)
+        returns, weights, _ = imagined_returns(agent.wm, agent.value, feats, gamma, lam)
         return -(weights * returns).mean()
 
 
@@ -1025,7 +1139,8 @@ class Addressing:
     """The addressing model f_φ, its optimiser, and the embeddings D of the candidate chunks of M (Algorithm 2)."""
 
     def __init__(self, obs_shape, action_size: int, args: Args, device):
-        self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth).to(device)
+        self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth)
+        self.net = set_speed_options(self.net, args.precision, args.channels_last).to(device)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr)
         self.method, self.device = args.method, device
         self.stop_grad_x = args.address_stop_grad_x
@@ -1114,56 +1229,113 @@ def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title
 # 7. Acting, logging, checkpoints, benchmark
 # ----------------------------------------------------------------------------------------------------------
 class Policy:
-    """Acts online: keeps the RSSM posterior of the current episode and picks actions from it."""
+    """Acts online in N envs at once: keeps the RSSM posteriors of the current episodes and picks actions from them."""
 
     def __init__(self, agent: Agent, device):
         self.agent, self.device = agent, device
 
-    def reset(self):
-        self.state, self.action = None, torch.zeros(1, self.agent.actor.action_size, device=self.device)
+    def reset(self, num_envs: int = 1):
+        self.state, self.action = None, torch.zeros(num_envs, self.agent.actor.action_size, device=self.device)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, explore_noise: Optional[float], rng: np.random.Generator) -> np.ndarray:
-        """explore_noise None = evaluation (the mode); else a sample plus Gaussian noise of that std."""
+        """obs (N, ...) -> actions (N, A). explore_noise None = evaluation (the mode); else a sample plus Gaussian
+        noise of that std."""
         wm = self.agent.wm
-        embed = wm.encoder(preprocess_obs(obs[None, None], self.device))[:, 0]  # (1, E)
-        state = self.state if self.state is not None else wm.rssm.initial(1, self.device)
+        embed = wm.encoder(preprocess_obs(obs[:, None], self.device))[:, 0]  # (N, E)
+        state = self.state if self.state is not None else wm.rssm.initial(len(obs), self.device)
         self.state = wm.rssm.obs_step(wm.rssm.img_step(state, self.action), wm.rssm.obs_embed(embed))
         feat = wm.rssm.feat(self.state)
         if explore_noise is None:
             action = self.agent.actor.mode(feat)
         else:
             action = self.agent.actor(feat).sample()
-        action = action[0].cpu().numpy()
+        action = action.cpu().numpy()  # (N, A)
         if explore_noise:
             action = np.clip(action + rng.normal(0.0, explore_noise, action.shape), -1.0, 1.0)
-        self.action = torch.as_tensor(action, dtype=torch.float32, device=self.device)[None]
+        self.action = torch.as_tensor(action, dtype=torch.float32, device=self.device)
         return action.astype(np.float32)
 
 
+def finish_episode(steps: dict, extras: dict, task: str, success: Optional[bool]) -> dict:
+    """Lists of per-step obs/action/reward/terminal -> the episode dict that is stored (see section 4)."""
+    episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None) for k, v in steps.items()}
+    episode.update({k: np.asarray(v) for k, v in extras.items()})
+    episode["task"] = np.asarray(task)
+    episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
+    if success is not None:  # envs that report success: success at any step counts
+        episode["success"] = np.asarray(success)
+    return episode
+
+
 def run_episode(env, act, seed: int, task: str, record: bool = False):
-    """Play one episode; act(obs) -> action (None for random actions). Returns the episode dict and frames."""
+    """Play one episode; act(obs) -> action. Returns the episode dict and the rendered frames (record=True)."""
     obs = env.reset(seed=seed)
-    episode = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
+    steps = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
     frames = [env.render()] if record else []
     done, success = False, None  # success stays None for envs that do not report it
     while not done:
         action = act(obs)
         obs, reward, terminated, truncated, info = env.step(action)
         for key, value in zip(("obs", "action", "reward", "terminal"), (obs, action, reward, terminated)):
-            episode[key].append(value)
+            steps[key].append(value)
         if "success" in info:
-            success = bool(success) or bool(info["success"])  # success at any step counts
+            success = bool(success) or bool(info["success"])
         if record:
             frames.append(env.render())
         done = terminated or truncated
-    episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None) for k, v in episode.items()}
-    episode.update({k: np.asarray(v) for k, v in env.extras().items()})
-    episode["task"] = np.asarray(task)
-    episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
-    if success is not None:
-        episode["success"] = np.asarray(success)
-    return episode, frames
+    return finish_episode(steps, env.extras(), task, success), frames
+
+
+class GymAdapter(gymnasium.Env):
+    """One of this file's envs as a gymnasium.Env, so that gymnasium's AsyncVectorEnv can step it in a subprocess.
+
+    A vector env steps all its envs together: once an episode is over, further steps return its last observation
+    and change nothing (Meta-World raises on a step past its time limit)."""
+
+    def __init__(self, args: Args, env_id: str, seed: int):
+        self.env = make_env(args, env_id, seed)
+        pixels = len(self.env.obs_shape) == 3
+        self.observation_space = gymnasium.spaces.Box(0 if pixels else -np.inf, 255 if pixels else np.inf,
+                                                      self.env.obs_shape, np.uint8 if pixels else np.float32)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (self.env.action_size,), np.float32)
+        self._obs, self._done = None, True
+
+    def reset(self, seed=None, options=None):
+        self._obs, self._done = self.env.reset(seed=seed), False
+        return self._obs, {}
+
+    def step(self, action):
+        if self._done:
+            return self._obs, 0.0, False, True, {}
+        self._obs, reward, terminated, truncated, info = self.env.step(action)
+        self._done = terminated or truncated
+        return self._obs, reward, terminated, truncated, info
+
+    def extras(self) -> dict:
+        return self.env.extras()
+
+    def close(self):
+        self.env.close()
+
+
+def run_parallel_episodes(envs, act, seeds: list, task: str) -> list:
+    """One episode in each env of a gymnasium vector env of GymAdapters; act(obs (N, ...)) -> actions (N, A)."""
+    obs, _ = envs.reset(seed=list(seeds))
+    n = len(seeds)
+    steps = [{"obs": [obs[i]], "action": [np.zeros(envs.single_action_space.shape, np.float32)], "reward": [0.0],
+              "terminal": [False]} for i in range(n)]
+    done, success = np.zeros(n, bool), [None] * n
+    while not done.all():
+        action = act(obs)  # (N, A)
+        obs, reward, terminated, truncated, info = envs.step(action)
+        for i in np.flatnonzero(~done):
+            for key, value in zip(("obs", "action", "reward", "terminal"), (obs, action, reward, terminated)):
+                steps[i][key].append(value[i])
+            if "success" in info and info["_success"][i]:
+                success[i] = bool(success[i]) or bool(info["success"][i])
+        done |= terminated | truncated
+    return [finish_episode(steps[i], extras, task, success[i]) for i, extras in enumerate(envs.call("extras"))]
 
 
 def episode_metrics(prefix: str, episodes: list) -> dict:
@@ -1277,6 +1449,42 @@ def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, ta
     return replay
 
 
+def cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor()
+
+
+def benchmark_collection(args: Args, device) -> None:
+    """Env steps per second of collection with the agent's policy acting (rendering + one encoder and RSSM step per
+    agent step), in one env and in --num-envs subprocesses."""
+    args = dataclasses.replace(args, time_limit=min(args.time_limit, 400), total_steps=10**9)
+    env = make_env(args, args.env_id, args.seed)
+    policy = Policy(Agent(env.obs_shape, env.action_size, args).to(device), device)
+    rng = np.random.default_rng(args.seed)
+    for num_envs in sorted({1, args.num_envs}):
+        workers = None if num_envs == 1 else gymnasium.vector.AsyncVectorEnv(
+            [functools.partial(GymAdapter, args, args.env_id, args.seed + i) for i in range(num_envs)],
+            context="spawn", autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
+        for timed in (False, True):  # a first round warms up (subprocess start, renderer, kernels)
+            policy.reset(num_envs)
+            t0 = time.perf_counter()
+            if workers is None:
+                episodes = [run_episode(env, lambda o: policy.act(o[None], args.expl_noise, rng)[0], 0, "bench")[0]]
+            else:
+                episodes = run_parallel_episodes(workers, lambda o: policy.act(o, args.expl_noise, rng),
+                                                 list(range(num_envs)), "bench")
+            seconds = time.perf_counter() - t0
+        steps = sum(len(ep["reward"]) - 1 for ep in episodes) * args.action_repeat
+        print(f"{device.type:<6} collection {args.env_id} ({args.obs_type}), {num_envs} env(s): "
+              f"{steps / seconds:.0f} env steps/s", flush=True)
+        if workers is not None:
+            workers.close()
+    env.close()
+
+
 def benchmark(args: Args):
     """Seconds per full update (Algorithm 2: addressing + world model + actor + value) per method, at the paper's
     size and a small size, on CPU and on CUDA when present. Synthetic episodes: no environment in the timing."""
@@ -1284,9 +1492,10 @@ def benchmark(args: Args):
     if unknown:
         raise UsageError(f"--benchmark-methods: unknown {sorted(unknown)}")
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-    print(f"machine: {platform.machine()} {platform.processor() or ''} | {os.cpu_count()} CPUs | torch "
+    print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
           f"{torch.__version__} | threads {torch.get_num_threads()}"
-          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""), flush=True)
+          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "")
+          + f" | precision {args.precision} | channels-last {args.channels_last} | compile {args.compile}", flush=True)
     obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else (24,)
     rng = np.random.default_rng(args.seed)
     replay = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng, task="current")
@@ -1298,18 +1507,23 @@ def benchmark(args: Args):
           + " ".join(f"{p:>14}" for p in parts), flush=True)
     for device_name in devices:
         device = torch.device(device_name)
-        for size, (n, length) in {"paper": (50, 50), "small": (16, 50)}.items():
+        for size in args.benchmark_sizes:
+            n, length = {"paper": (50, 50), "small": (16, 50)}[size]
             reference = None
             for method in args.benchmark_methods:
                 run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method)
                 agent = Agent(obs_shape, 6, run_args).to(device)
                 addressing = Addressing(obs_shape, 6, run_args, device) if method in ADDRESSED_METHODS else None
                 totals = dict.fromkeys(parts + ["total"], 0.0)
+                sampler = ChunkSampler(replay, n, length, rng, device, args.prefetch)
+                batches = sampler.batches(args.benchmark_updates + 1)
                 for i in range(args.benchmark_updates + 1):  # update 0 warms up (and refreshes D, once per C)
                     if device.type == "cuda":
                         torch.cuda.synchronize()
                     t0 = time.perf_counter()
-                    out = update(agent, replay, multitask, addressing, run_args, rng, device, "current", i)
+                    x, waited = next(batches)
+                    out = update(agent, x, multitask, addressing, run_args, rng, device, "current", i)
+                    out["timings"]["batch_sampling"] += waited
                     if device.type == "cuda":
                         torch.cuda.synchronize()
                     if i > 0:
@@ -1317,9 +1531,12 @@ def benchmark(args: Args):
                         for k in parts:
                             totals[k] += out["timings"].get(k, 0.0) / args.benchmark_updates
                 reference = reference or totals["total"]
+                sampler.close()
                 print(f"{device_name:<6} {size:<6} {n:>3} {length:>3} {method:<8} {totals['total']:>9.3f} "
                       f"{totals['total'] / reference:>9.2f}x " + " ".join(f"{totals[p]:>14.3f}" for p in parts),
                       flush=True)
+        if args.benchmark_collection:
+            benchmark_collection(args, device)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1355,15 +1572,13 @@ def every(n: int, count: int) -> bool:
     return count % n == 0
 
 
-def update(agent: Agent, replay: Replay, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
+def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
            device, task_name: str, updates_done: int) -> dict:
-    """One update of Algorithm 2: (a) the addressing step, (b) the agent's step on a batch that, with
-    probability p, is β·n current chunks plus (1-β)·n chunks of M picked by q̂ (or uniformly for `uniform`)."""
+    """One update of Algorithm 2 given n current-task chunks x_i ~ M_τ (torch, on device): (a) the addressing step,
+    (b) the agent's step on a batch that, with probability p, is β·n current chunks plus (1-β)·n chunks of M
+    picked by q̂ (or uniformly for `uniform`)."""
     n, seq_len = args.batch_size, args.seq_len
-    timings, metrics, picks = {}, {}, None
-    t0 = time.perf_counter()
-    x = to_torch(replay.sample(n, seq_len, rng), device)  # x_i ~ M_τ, converted once for every use below
-    timings["batch_sampling"] = time.perf_counter() - t0
+    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
     use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
 
     if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
@@ -1437,6 +1652,11 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         return
 
     env, eval_env = make_env(args, env_id, seed), make_env(args, env_id, seed + 10_000)
+    workers = None  # --num-envs > 1: collecting envs in subprocesses (spawned: no fork of a process using torch)
+    if args.num_envs > 1:
+        workers = gymnasium.vector.AsyncVectorEnv(
+            [functools.partial(GymAdapter, args, env_id, seed + i) for i in range(args.num_envs)], context="spawn",
+            autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
     agent = Agent(env.obs_shape, env.action_size, args).to(device)
     policy = Policy(agent, device)
     n_params = sum(p.numel() for p in agent.parameters())
@@ -1445,6 +1665,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     if os.path.exists(checkpoint_path):
         state = load_checkpoint(checkpoint_path, agent)
         rng = np.random.default_rng([args.seed, len(replay)])  # fresh stream: resume is not bit-identical
+    sampler = ChunkSampler(replay, args.batch_size, args.seq_len, np.random.default_rng([seed, len(replay), 1]),
+                           device, args.prefetch)
     logger = Logger(task_path, args)
     for folder in (["videos"] if args.capture_video else []) + (["addressing"] if addressing else []):
         os.makedirs(os.path.join(task_path, folder), exist_ok=True)
@@ -1457,14 +1679,15 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     progress = tqdm(total=args.total_steps, initial=min(env_steps, args.total_steps), unit="step", dynamic_ncols=True,
                     disable=None)
     start_time, start_steps = time.time(), env_steps
+    updates_per_round = args.updates_per_episode * args.num_envs  # C updates per collected episode
     try:
         while env_steps < args.total_steps:
             # (a) C updates on chunks of the replay (mixed with M), once there is something to learn from
             if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
                 sums, timings, picks = {}, {}, []
-                for _ in range(args.updates_per_episode):
-                    out = update(agent, replay, multitask, addressing, args, rng, device, env.task_name,
-                                 state["updates"])
+                for x, waited in sampler.batches(updates_per_round):
+                    out = update(agent, x, multitask, addressing, args, rng, device, env.task_name, state["updates"])
+                    out["timings"]["batch_sampling"] += waited
                     state["updates"] += 1
                     for k, v in out["metrics"].items():
                         sums[k] = sums.get(k, 0.0) + v.detach()
@@ -1472,12 +1695,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                         timings[k] = timings.get(k, 0.0) + v
                     if out["picks"] is not None:
                         picks.append(out["picks"])
-                metrics = {k: v.item() / args.updates_per_episode for k, v in sums.items()}
+                metrics = {k: v.item() / updates_per_round for k, v in sums.items()}
                 if "addressing/refresh_seconds" in sums:  # a sum of refreshes, not a per-update mean
                     metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
-                metrics.update({f"time/{k}_per_update": v / args.updates_per_episode for k, v in timings.items()})
+                metrics.update({f"time/{k}_per_update": v / updates_per_round for k, v in timings.items()})
                 if args.method != "dreamer":
-                    metrics.update(picks_metrics(picks, multitask, addressing, args.updates_per_episode))
+                    metrics.update(picks_metrics(picks, multitask, addressing, updates_per_round))
                 metrics["charts/updates"] = state["updates"]
                 logger.log(env_steps, metrics)
                 save_checkpoint(checkpoint_path, agent, state)
@@ -1504,7 +1727,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 episodes = []
                 for i in range(args.eval_episodes):
                     policy.reset()
-                    episode, frames = run_episode(eval_env, lambda o: policy.act(o, None, rng),
+                    episode, frames = run_episode(eval_env, lambda o: policy.act(o[None], None, rng)[0],
                                                   seed=seed * 1_000_003 + 7919 * env_steps + i,
                                                   task=env.task_name, record=args.capture_video and i == 0)
                     episodes.append(episode)
@@ -1517,32 +1740,41 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 while state["next_eval"] <= env_steps:
                     state["next_eval"] += args.eval_every
 
-            # (c) collect one episode (random actions while prefilling) and store it atomically
+            # (c) collect one episode per env (random actions while prefilling) and store each atomically
+            first = len(replay)
+            seeds = [seed * 1_000_003 + first + i for i in range(args.num_envs)]  # episode k's seed, N or not
             if len(replay) < args.prefill_episodes:
-                act = lambda o: rng.uniform(-1, 1, env.action_size).astype(np.float32)  # noqa: E731
+                act = lambda o: rng.uniform(-1, 1, (len(o), env.action_size)).astype(np.float32)  # noqa: E731
             else:
-                policy.reset()
+                policy.reset(args.num_envs)
                 act = lambda o: policy.act(o, args.expl_noise, rng)  # noqa: E731
-            episode, _ = run_episode(env, act, seed=seed * 1_000_003 + len(replay), task=env.task_name)
-            save_episode(episode_dir, len(replay), episode)
-            replay.add(episode)
-            if args.method != "dreamer":
-                multitask.add(episode)
-            steps = (len(episode["reward"]) - 1) * args.action_repeat
-            env_steps += steps
-            progress.update(steps)
-            sps = (env_steps - start_steps) / (time.time() - start_time)
-            logger.log(env_steps, {**episode_metrics("charts", [episode]), "charts/episodic_length": steps,
-                                   "charts/SPS": sps, "charts/episodes": len(replay)})
+            if workers is None:
+                episodes = [run_episode(env, lambda o: act(o[None])[0], seeds[0], env.task_name)[0]]
+            else:
+                episodes = run_parallel_episodes(workers, act, seeds, env.task_name)
+            for episode in episodes:
+                save_episode(episode_dir, len(replay), episode)
+                replay.add(episode)
+                if args.method != "dreamer":
+                    multitask.add(episode)
+                steps = (len(episode["reward"]) - 1) * args.action_repeat
+                env_steps += steps
+                progress.update(steps)
+                sps = (env_steps - start_steps) / (time.time() - start_time)
+                logger.log(env_steps, {**episode_metrics("charts", [episode]), "charts/episodic_length": steps,
+                                       "charts/SPS": sps, "charts/episodes": len(replay)})
             progress.set_postfix(ret=f"{float(episode['return']):.1f}", sps=f"{sps:.1f}")
-            if progress.disable:  # no terminal (nohup, CI): one plain line per episode instead of the bar
+            if progress.disable:  # no terminal (nohup, CI): one plain line per round instead of the bar
                 print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "
-                      f"{float(episode['return']):.1f} | {sps:.1f} steps/s", flush=True)
+                      f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
     finally:
         progress.close()
+        sampler.close()
         logger.close()
         env.close()
         eval_env.close()
+        if workers is not None:
+            workers.close()
 
 
 def main(args: Args):

@@ -156,10 +156,15 @@ def test_tiny_run_on_the_kitchen(tmp_path, task):
 def test_benchmark_command_prints_every_method():
     proc = run("--benchmark", "--obs-type", "state", "--benchmark-updates", "1", "--deter-size", "8",
                "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8",
-               "--horizon", "3", "--benchmark-methods", "dreamer", "uniform", "rrama", "vrama", "rbrama")
-    assert proc.stdout.startswith("machine: ")
-    rows = [line.split() for line in proc.stdout.splitlines()[2:]]
+               "--horizon", "3", "--benchmark-methods", "dreamer", "uniform", "rrama", "vrama", "rbrama",
+               "--num-envs", "2")
+    header, *lines = proc.stdout.splitlines()
+    assert "machine: " in header and "precision fp32" in header
+    collection = [line for line in lines if " collection " in line]
+    rows = [line.split() for line in lines[1:] if " collection " not in line]
     assert [(r[0], r[1], r[4]) for r in rows] == [(d, size, m) for d in ["cpu"] + (["cuda"] if len(rows) > 10 else [])
                                                   for size in ("paper", "small")
                                                   for m in ("dreamer", "uniform", "rrama", "vrama", "rbrama")]
+    assert [line.split("env(s)")[0].split()[-1] for line in collection[:2]] == ["1", "2"]  # 1 env, then 2
+    assert all(float(line.split(":")[-1].split()[0]) > 0 for line in collection)
     assert all(float(r[5]) > 0 for r in rows)

@@ -140,17 +140,17 @@ def test_batch_merge_keeps_beta_n_current_chunks():
 
     rd.train_step = spy
     try:
-        rd.update(agent, current, multitask, None, args, rng, "cpu", "now", 0)
+        rd.update(agent, rd.to_torch(current.sample(8, 5, rng), "cpu"), multitask, None, args, rng, "cpu", "now", 0)
         obs = seen["batch"]["obs"]
         assert obs.shape[0] == 8
         assert torch.all(obs[:2] == 0) and torch.all(obs[2:] == 1)  # β·n = 2 current rows, then 6 borrowed
         assert seen["reward_mask"].tolist() == [1.0] * 2 + [0.0] * 6  # other task's rewards are masked
         assert seen["model_mask"] is None
         args = rd.Args(**{**vars(args), "wm_on_addressed": False})
-        rd.update(agent, current, multitask, None, args, rng, "cpu", "now", 0)
+        rd.update(agent, rd.to_torch(current.sample(8, 5, rng), "cpu"), multitask, None, args, rng, "cpu", "now", 0)
         assert seen["model_mask"].tolist() == [1.0] * 2 + [0.0] * 6
         args = rd.Args(**{**vars(args), "address_prob": 0.0})
-        rd.update(agent, current, multitask, None, args, rng, "cpu", "now", 0)
+        rd.update(agent, rd.to_torch(current.sample(8, 5, rng), "cpu"), multitask, None, args, rng, "cpu", "now", 0)
         assert torch.all(seen["batch"]["obs"] == 0) and seen["reward_mask"] is None
     finally:
         rd.train_step = real

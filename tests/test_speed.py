@@ -1,0 +1,198 @@
+"""The fast paths compute what the plain path computes: same losses and gradients on a fixed batch (within a stated
+tolerance), same batches with and without prefetch, same episodes with and without parallel envs."""
+import copy
+import functools
+
+import numpy as np
+import pytest
+import torch
+import torch.nn as nn
+
+import rama_dreamer as rd
+from helpers import TINY, run_script
+
+PIXEL = dict(deter_size=16, stoch_size=4, hidden_size=16, mlp_units=16, cnn_depth=4, horizon=3, batch_size=3,
+             seq_len=4)
+
+
+def _pixel_batch(seed=0, n=3, seq_len=4):
+    rng = np.random.default_rng(seed)
+    return rd.to_torch(rd.synthetic_replay((64, 64, 3), 2, 2, 10, rng).sample(n, seq_len, rng), "cpu")
+
+
+def _wm_loss(agent, batch, seed=0):
+    torch.manual_seed(seed)  # the posterior samples
+    loss, _, metrics = rd.world_model_loss(agent.wm, batch, 3.0, 1.0)
+    return loss, metrics
+
+
+@pytest.mark.parametrize("pad", [(0, 0), (1, 0), (1, 1)])
+def test_upconv_equals_transposed_conv_with_output_padding(pad):
+    torch.manual_seed(0)
+    reference = nn.ConvTranspose2d(6, 5, 4, 2, output_padding=pad)
+    fast = rd.UpConv(6, 5, pad)
+    fast.load_state_dict(reference.state_dict())
+    x = torch.randn(2, 6, 7, 7, requires_grad=True)
+    y_ref, y = reference(x), fast(x)
+    assert y.shape == y_ref.shape and torch.allclose(y, y_ref, atol=1e-6)
+    g_ref = torch.autograd.grad(y_ref.square().sum(), [x, reference.weight, reference.bias])
+    g = torch.autograd.grad(y.square().sum(), [x, fast.weight, fast.bias])
+    for a, b in zip(g, g_ref):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_channels_last_gives_the_plain_losses_and_gradients():
+    """Memory layout only: fp32 results agree to float rounding (tolerance 1e-4 relative)."""
+    torch.manual_seed(0)
+    plain = rd.Agent((64, 64, 3), 2, rd.Args(**PIXEL, channels_last=False))
+    fast = copy.deepcopy(plain)
+    rd.set_speed_options(fast, "fp32", channels_last=True)
+    assert fast.wm.encoder.net[0].weight.is_contiguous(memory_format=torch.channels_last)
+    batch = _pixel_batch()
+    (loss_plain, m_plain), (loss_fast, m_fast) = _wm_loss(plain, batch), _wm_loss(fast, batch)
+    assert torch.allclose(loss_fast, loss_plain, rtol=1e-4)
+    g_plain = torch.autograd.grad(loss_plain, list(plain.wm.parameters()))
+    g_fast = torch.autograd.grad(loss_fast, list(fast.wm.parameters()))
+    for a, b in zip(g_fast, g_plain):
+        assert torch.allclose(a, b, rtol=1e-3, atol=1e-5)
+
+
+def test_bf16_losses_stay_close_to_fp32():
+    """bf16 convs and MLP hidden layers: world-model terms within 1% and imagined returns within 2% of fp32."""
+    torch.manual_seed(0)
+    fp32 = rd.Agent((64, 64, 3), 2, rd.Args(**PIXEL))
+    bf16 = copy.deepcopy(fp32)
+    rd.set_speed_options(bf16, "bf16", channels_last=True)
+    assert bf16.wm.decoder.bf16 and bf16.value.bf16 and not fp32.value.bf16
+    batch = _pixel_batch()
+    with torch.no_grad():
+        (_, m32), (_, m16) = _wm_loss(fp32, batch), _wm_loss(bf16, batch)
+    for key in ("losses/obs_loglik", "losses/reward_loglik", "losses/kl"):
+        assert abs(float(m16[key] - m32[key])) <= 0.01 * abs(float(m32[key].detach())) + 1e-3, key
+    feats = torch.randn(3, 5, fp32.wm.rssm.feat_size)
+    r32, _, v32 = rd.imagined_returns(fp32.wm, fp32.value, feats, 0.99, 0.95)
+    r16, _, v16 = rd.imagined_returns(bf16.wm, bf16.value, feats, 0.99, 0.95)
+    assert v16.dtype == torch.float32  # output layers stay fp32
+    assert torch.allclose(r16, r32, rtol=0.02, atol=0.02)
+
+
+def test_one_value_pass_matches_the_two_pass_update():
+    """train_step computes the value once for both losses; its parameter updates equal those of the plain recipe:
+    actor loss with the value frozen, then the value loss on a second pass over detached features."""
+    args = rd.Args(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=4,
+                   batch_size=3, seq_len=5)
+    torch.manual_seed(0)
+    agent = rd.Agent((3,), 2, args)
+    reference = copy.deepcopy(agent)
+    rng = np.random.default_rng(0)
+    batch = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(3, 5, rng), "cpu")
+
+    torch.manual_seed(1)
+    rd.train_step(agent, batch, args)
+
+    torch.manual_seed(1)  # the plain recipe, step by step, with the same random draws
+    ref = reference
+    loss, post, _ = rd.world_model_loss(ref.wm, batch, args.free_nats, args.kl_scale)
+    ref.model_opt.zero_grad()
+    loss.backward()
+    nn.utils.clip_grad_norm_(ref.wm.parameters(), args.grad_clip)
+    ref.model_opt.step()
+    with rd.Freeze(ref.wm, ref.value):
+        feats = rd.imagine(ref.wm, ref.actor, rd.flatten_states(post), args.horizon)
+        returns, weights, _ = rd.imagined_returns(ref.wm, ref.value, feats, args.gamma, args.return_lambda)
+        actor_loss = -(weights * returns).mean()
+    ref.actor_opt.zero_grad()
+    actor_loss.backward()
+    nn.utils.clip_grad_norm_(ref.actor.parameters(), args.grad_clip)
+    ref.actor_opt.step()
+    value_pred = ref.value(feats[:-1].detach()).squeeze(-1)
+    value_loss = -(weights * rd.gaussian_loglik(value_pred, returns.detach(), 0)).mean()
+    ref.value_opt.zero_grad()
+    value_loss.backward()
+    nn.utils.clip_grad_norm_(ref.value.parameters(), args.grad_clip)
+    ref.value_opt.step()
+
+    for (name, p), p_ref in zip(agent.named_parameters(), ref.parameters()):
+        assert torch.allclose(p, p_ref, atol=1e-6), name
+
+
+def test_compiled_rssm_gives_the_eager_losses(monkeypatch):
+    import torch._inductor.config as inductor_config
+
+    monkeypatch.setattr(inductor_config, "fallback_random", True)  # compiled code draws eager's random numbers
+    args = rd.Args(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3,
+                   batch_size=3, seq_len=5)
+    torch.manual_seed(0)
+    eager = rd.Agent((3,), 2, args)
+    compiled = rd.Agent((3,), 2, rd.Args(**{**vars(args), "compile": True}))
+    compiled.load_state_dict(eager.state_dict())
+    rng = np.random.default_rng(0)
+    batch = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(3, 5, rng), "cpu")
+    torch.manual_seed(1)
+    out_eager = rd.train_step(eager, batch, args)["metrics"]
+    torch.manual_seed(1)
+    out_compiled = rd.train_step(compiled, batch, args)["metrics"]
+    for key in ("losses/world_model", "losses/actor", "losses/value"):
+        assert torch.allclose(out_compiled[key], out_eager[key], rtol=1e-4, atol=1e-5), key
+
+
+@pytest.mark.parametrize("prefetch", [False, True])
+def test_chunk_sampler_same_batches_with_and_without_prefetch(prefetch):
+    rng = np.random.default_rng(0)
+    replay = rd.synthetic_replay((3,), 2, 3, 20, rng)
+    reference = rd.ChunkSampler(replay, 4, 5, np.random.default_rng(7), "cpu", prefetch=False)
+    sampler = rd.ChunkSampler(replay, 4, 5, np.random.default_rng(7), "cpu", prefetch=prefetch)
+    got = [x for x, _ in sampler.batches(3)]
+    expected = [x for x, _ in reference.batches(3)]
+    sampler.close()
+    assert len(got) == 3
+    for x, y in zip(got, expected):
+        assert x["obs"].shape == (4, 5, 3)
+        assert all(torch.equal(x[k], y[k]) for k in x)
+    assert not torch.equal(got[0]["obs"], got[1]["obs"])  # a fresh batch each time
+
+
+def test_policy_acts_in_several_envs_at_once():
+    args = rd.Args(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8)
+    policy = rd.Policy(rd.Agent((3,), 2, args), "cpu")
+    policy.reset(num_envs=4)
+    rng = np.random.default_rng(0)
+    actions = policy.act(np.zeros((4, 3), np.float32), 0.3, rng)
+    assert actions.shape == (4, 2) and actions.dtype == np.float32 and np.all(np.abs(actions) <= 1)
+    assert policy.act(np.zeros((4, 3), np.float32), None, rng).shape == (4, 2)
+
+
+def test_parallel_envs_play_the_sequential_episodes():
+    """AsyncVectorEnv over GymAdapters: with the same seeds and a deterministic policy, the same episodes as one
+    env played episode after episode; a finished env ignores the extra steps."""
+    import gymnasium
+
+    args = rd.resolve_defaults(rd.Args(env_id="dmc/cartpole-balance", obs_type="state", time_limit=40))
+    seeds = [11, 12]
+    envs = gymnasium.vector.AsyncVectorEnv([functools.partial(rd.GymAdapter, args, args.env_id, i) for i in range(2)],
+                                           context="spawn", autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
+    act = lambda obs: np.tanh(obs[..., :1]).astype(np.float32)  # noqa: E731  deterministic, state-dependent
+    try:
+        parallel = rd.run_parallel_episodes(envs, act, seeds, "cartpole-balance")
+    finally:
+        envs.close()
+    env = rd.make_env(args, args.env_id, 0)
+    try:
+        for seed, episode in zip(seeds, parallel):
+            single, _ = rd.run_episode(env, lambda o: act(o[None])[0], seed, "cartpole-balance")
+            assert episode.keys() == single.keys()
+            assert len(episode["reward"]) == 21  # 40 env steps / repeat 2, plus the reset step
+            for key in ("obs", "action", "reward", "terminal", "return"):
+                assert np.allclose(episode[key], single[key]), key
+        assert not np.allclose(parallel[0]["obs"], parallel[1]["obs"])
+    finally:
+        env.close()
+
+
+def test_script_with_fast_paths_runs(tmp_path):
+    """bf16, prefetch and two collecting subprocesses together, end to end (pixels, tiny sizes)."""
+    proc = run_script("rama_dreamer.py", "--env-id", "dmc/walker-walk", *TINY, "--run-dir", str(tmp_path),
+                      "--precision", "bf16", "--num-envs", "2", "--total-steps", "400")
+    assert "episode 4" in proc.stdout
+    (run,) = tmp_path.iterdir()
+    assert len(list((run / "episodes").glob("*.npz"))) == 4
