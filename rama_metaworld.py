@@ -101,6 +101,8 @@ class Args:
     """methods the benchmark times"""
     benchmark_sizes: Tuple[Literal["paper", "small"], ...] = ("paper", "small")
     """sizes the benchmark times: paper (n=50, L=50), small (n=16, L=50)"""
+    benchmark_profile: bool = False
+    """instead of the timings: profile one paper-size `dreamer` update and print the operators that take the time"""
     benchmark_collection: bool = True
     """the benchmark also times collection (env steps per second, 1 env and --num-envs envs, --env-id)"""
 
@@ -146,8 +148,10 @@ class Args:
     """channel multiplier of the conv encoder and decoder"""
     mlp_units: int = 400
     """units of the reward, value and actor MLPs (and of the state encoder/decoder)"""
-    free_nats: float = 3.0
-    """KL below this many nats is not penalised"""
+    free_nats: Optional[float] = None
+    """KL below this many nats is not penalised; None = 3 for pixels (the paper), 0 for state observations (a
+    low-dimensional state's KL sits below 3 nats, where the clamp would leave the prior untrained and imagination
+    blind to actions)"""
     kl_scale: float = 1.0
     """weight of the KL term"""
     model_lr: float = 6e-4
@@ -206,6 +210,9 @@ class Args:
     """GRU size of the addressing model = size of a trajectory embedding"""
     address_cnn_depth: int = 16
     """channel multiplier of the addressing model's own conv encoder"""
+    address_imagine_starts: int = 0
+    """VRAMa: imagine from this many of the n·L posteriors of the selected chunks, drawn at random (an unbiased
+    estimate of Eq. 1's mean over all of them); 0 = all of them, as the paper does"""
     address_stop_grad_x: Optional[bool] = None
     """stop the gradient through f(x); None = on for rrama and rbrama, off for vrama"""
     address_standardize: bool = True
@@ -222,7 +229,9 @@ class Args:
 
 def resolve_defaults(args: Args) -> Args:
     """Fill the defaults that depend on the environment (right after parsing; saved resolved in args.json)."""
-    return dataclasses.replace(args, horizon=args.horizon or 15, time_limit=args.time_limit or 500)
+    free_nats = args.free_nats if args.free_nats is not None else (3.0 if args.obs_type == "pixels" else 0.0)
+    return dataclasses.replace(args, horizon=args.horizon or 15, time_limit=args.time_limit or 500,
+                               free_nats=free_nats)
 
 
 def check_args(args: Args) -> None:
@@ -235,7 +244,7 @@ def check_args(args: Args) -> None:
     for name in positive:
         if getattr(args, name) <= 0:
             raise UsageError(f"--{name.replace('_', '-')} must be > 0 (got {getattr(args, name)})")
-    for name in ["eval_episodes"]:
+    for name in ["eval_episodes", "address_imagine_starts"]:
         if getattr(args, name) < 0:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
     if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
@@ -1121,15 +1130,20 @@ def reinforce_loss(logits, index, advantage, standardize: bool):
     return -(advantage * log_q).mean()
 
 
-def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float, lam: float):
+def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float, lam: float, starts: int = 0):
     """Eq. 1: imagine from the posteriors of the selected chunks M_j and return −Σ_t V_λ (mean over starts).
 
     The agent stays fixed (frozen); the gradient reaches φ through the one-hots, the inputs of the world model.
+    starts > 0 imagines from that many of the n·L posteriors, drawn at random: an unbiased estimate of the mean
+    over all of them at a fraction of the cost (the posteriors themselves still filter every step of each chunk).
     """
     obs, action = select_chunks(one_hot, m_batch["obs"]), select_chunks(one_hot, m_batch["action"])  # (n, L, ...)
     with Freeze(agent):
         post, _ = agent.wm.rssm.observe(agent.wm.encoder(obs), action)
         start = {k: v.flatten(0, 1) for k, v in post.items()}  # (n*L, ...), not detached: φ learns through it
+        if 0 < starts < len(start["deter"]):
+            keep = torch.randperm(len(start["deter"]), device=one_hot.device)[:starts]  # (starts,)
+            start = {k: v[keep] for k, v in start.items()}
         feats = imagine(agent.wm, agent.actor, start, horizon)
         returns, weights, _ = imagined_returns(agent.wm, agent.value, feats, gamma, lam)
         return -(weights * returns).mean()
@@ -1157,7 +1171,8 @@ class Addressing:
         logits = address_logits(self.embed(x), self.embed(m_batch), self.stop_grad_x)  # (n, m)
         if self.method == "vrama":
             one_hot, index = straight_through_sample(logits)
-            loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda)
+            loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda,
+                              args.address_imagine_starts)
         else:
             index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
             advantage = predicted_reward_sum(agent.wm, m_batch)[index]  # Eq. 2 (RRAMa)
@@ -1485,6 +1500,19 @@ def benchmark_collection(args: Args, device) -> None:
     env.close()
 
 
+def profile_update(args: Args, obs_shape, replay: Replay, multitask: Replay, rng) -> None:
+    """Where the time of one paper-size Dreamer update goes, operator by operator (CPU, after a warm-up update)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    run_args = dataclasses.replace(args, batch_size=50, seq_len=50, method="dreamer")
+    agent, device = Agent(obs_shape, 6, run_args), torch.device("cpu")
+    batches = ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(2)
+    update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 0)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 1)
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20, max_name_column_width=40), flush=True)
+
+
 def benchmark(args: Args):
     """Seconds per full update (Algorithm 2: addressing + world model + actor + value) per method, at the paper's
     size and a small size, on CPU and on CUDA when present. Synthetic episodes: no environment in the timing."""
@@ -1502,6 +1530,8 @@ def benchmark(args: Args):
     multitask = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng, task="prior")
     for episode in replay.episodes:
         multitask.add(episode)
+    if args.benchmark_profile:
+        return profile_update(args, obs_shape, replay, multitask, rng)
     parts = ["world_model", "actor_critic", "addressing", "batch_sampling"]
     print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "
           + " ".join(f"{p:>14}" for p in parts), flush=True)

@@ -137,7 +137,8 @@ def test_gaussian_loglik():
 
 
 def test_actor_loss_trains_only_the_actor():
-    args = rd.Args(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, batch_size=2, seq_len=4)
+    args = rd.Args(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=3.0, batch_size=2,
+                   seq_len=4)
     agent = rd.Agent((5,), 2, args)
     rng = np.random.default_rng(0)
     replay = rd.synthetic_replay((5,), 2, episodes=1, length=10, rng=rng)
@@ -151,3 +152,15 @@ def test_actor_loss_trains_only_the_actor():
         changed = not torch.equal(value, before[key])
         assert changed == key.startswith("actor."), key
     assert all(p.requires_grad for p in agent.parameters())  # Freeze restored gradients
+
+
+def test_free_nats_default_depends_on_the_observations():
+    """3 nats for pixels (the paper); 0 for a low-dimensional state, whose KL sits below 3 nats: the clamp would leave
+    the prior without gradient and the imagined rollouts blind to the actions."""
+    assert rd.resolve_defaults(rd.Args()).free_nats == 3.0
+    assert rd.resolve_defaults(rd.Args(obs_type="state")).free_nats == 0.0
+    assert rd.resolve_defaults(rd.Args(obs_type="state", free_nats=1.5)).free_nats == 1.5
+    post, prior = _state([[0.5]], [[2.0]]), _state([[0.0]], [[1.0]])  # KL ≈ 0.93 nats, below 3
+    (clamped,) = torch.autograd.grad(rd.kl_with_free_nats(post, prior, free_nats=3.0)[0], post["mean"])
+    (free,) = torch.autograd.grad(rd.kl_with_free_nats(post, prior, free_nats=0.0)[0], post["mean"])
+    assert torch.all(clamped == 0) and torch.all(free != 0)

@@ -10,7 +10,7 @@ import torch
 import rama_dreamer as rd
 from helpers import TINY, run_script
 
-SMALL = dict(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, batch_size=4, seq_len=5,
+SMALL = dict(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=3.0, batch_size=4, seq_len=5,
              address_units=8, address_cnn_depth=2, address_batch=6)
 
 
@@ -95,6 +95,23 @@ def test_vrama_gradient_reaches_phi_only():
     assert all(torch.equal(v, agent_before[k]) for k, v in agent.state_dict().items())
     assert any(not torch.equal(v, phi_before[k]) for k, v in addressing.net.state_dict().items())
     assert all(p.grad is None for p in agent.parameters())
+
+
+def test_vrama_start_subset_is_the_full_loss_when_it_covers_every_start():
+    args = rd.Args(obs_type="state", method="vrama", **SMALL)
+    agent = rd.Agent((3,), 2, args)
+    rng = np.random.default_rng(0)
+    m = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(6, 5, rng), "cpu")
+    logits = torch.zeros(4, 6, requires_grad=True)
+    one_hot, _ = rd.straight_through_sample(logits)
+    losses = []
+    for starts in (0, 4 * 5, 7):  # all n·L, exactly n·L, a random 7 of them
+        torch.manual_seed(0)
+        losses.append(rd.vrama_loss(agent, one_hot, m, 3, 0.99, 0.95, starts))
+    assert torch.equal(losses[0], losses[1])
+    assert not torch.equal(losses[0], losses[2])
+    (grad,) = torch.autograd.grad(losses[2], logits)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0  # φ still learns through a subset
 
 
 def test_reward_mask_zeroes_masked_chunks():
