@@ -205,6 +205,9 @@ class Args:
     address_imagine_starts: int = 0
     """VRAMa: imagine from this many of the n·L posteriors of the selected chunks, drawn at random (an unbiased
     estimate of Eq. 1's mean over all of them); 0 = all of them, as the paper does"""
+    address_layer_norm: bool = False
+    """layer-normalise f_φ's per-step input layer (not in the paper; unnormalised rewards and states can saturate
+    the GRU and collapse q to uniform, see the README)"""
     address_stop_grad_x: Optional[bool] = None
     """stop the gradient through f(x); None = on for rrama and rbrama, off for vrama"""
     address_standardize: bool = True
@@ -831,13 +834,15 @@ class AddressNet(nn.Module):
 
     Its own encoder (not the world model's: the features that make a good addressing are not those that make a
     good reconstruction) reads each frame; [frame features, action, reward] pass an ELU layer into a GRU whose
-    last output is the embedding.
+    last output is the embedding. layer_norm (not in the paper) normalises that layer before the ELU: unnormalised
+    rewards and states can saturate the GRU, so that every chunk gets the same embedding and q turns uniform.
     """
 
-    def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int):
+    def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int, layer_norm: bool = False):
         super().__init__()
         self.encoder = ConvEncoder(obs_shape, cnn_depth) if len(obs_shape) == 3 else MLPEncoder(obs_shape[0], units)
-        self.inp = nn.Sequential(nn.Linear(self.encoder.embed_size + action_size + 1, units), nn.ELU())
+        self.inp = nn.Sequential(nn.Linear(self.encoder.embed_size + action_size + 1, units),
+                                 nn.LayerNorm(units) if layer_norm else nn.Identity(), nn.ELU())
         self.gru = nn.GRU(units, units, batch_first=True)
 
     def forward(self, obs, action, reward):  # (B, T, ...) -> (B, units)
@@ -1064,7 +1069,8 @@ class Addressing:
     """The addressing model f_φ, its optimiser, and the embeddings D of the candidate chunks of M (Algorithm 2)."""
 
     def __init__(self, obs_shape, action_size: int, args: Args, device):
-        self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth)
+        self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth,
+                              args.address_layer_norm)
         self.net = set_speed_options(self.net, args.precision, args.channels_last).to(device)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr)
         self.method, self.device = args.method, device

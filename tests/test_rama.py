@@ -114,6 +114,18 @@ def test_vrama_start_subset_is_the_full_loss_when_it_covers_every_start():
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0  # φ still learns through a subset
 
 
+def test_address_layer_norm_keeps_the_gru_input_in_range():
+    """Large unnormalised inputs (Meta-World rewards reach ≈10 a step, states are raw): with the layer norm the GRU
+    sees O(1) inputs; without it they scale with the inputs and saturate the GRU."""
+    torch.manual_seed(0)
+    obs, action, reward = 100 * torch.randn(2, 5, 3), torch.randn(2, 5, 2), 10 * torch.rand(2, 5)
+    for layer_norm, bounded in ((True, True), (False, False)):
+        net = rd.AddressNet((3,), 2, units=16, cnn_depth=2, layer_norm=layer_norm)
+        gru_input = net.inp(torch.cat([net.encoder(obs), action, reward[..., None]], -1))  # (2, 5, 16)
+        assert (gru_input.abs().max() < 5) == bounded
+    assert not rd.Args().address_layer_norm  # off by default: the paper's f_φ
+
+
 def test_reward_mask_zeroes_masked_chunks():
     args = rd.Args(obs_type="state", **SMALL)
     wm = rd.Agent((3,), 2, args).wm
