@@ -111,7 +111,7 @@ class Args:
     channels_last: bool = True
     """keep conv weights and activations in channels-last memory layout (faster convs on CPU and GPU)"""
     compile: bool = False
-    """torch.compile the RSSM steps and the heads (worth it on CUDA; the first updates pay the compile time)"""
+    """torch.compile the RSSM's img_step and obs_step (worth it on CUDA; the first updates pay the compile time)"""
     prefetch: bool = True
     """sample (and pin) the next batch in a background thread while the current update trains"""
     num_envs: int = 1
@@ -1400,7 +1400,7 @@ def benchmark_collection(args: Args, device) -> None:
         workers = None if num_envs == 1 else gymnasium.vector.AsyncVectorEnv(
             [functools.partial(GymAdapter, args, args.env_id, args.seed + i) for i in range(num_envs)],
             context="spawn", autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
-        for timed in (False, True):  # a first round warms up (subprocess start, renderer, kernels)
+        for _ in range(2):  # the first round warms up (subprocess start, renderer, kernels); the second is timed
             policy.reset(num_envs)
             t0 = time.perf_counter()
             if workers is None:
