@@ -213,6 +213,10 @@ class Args:
     address_imagine_starts: int = 0
     """VRAMa: imagine from this many of the n·L posteriors of the selected chunks, drawn at random (an unbiased
     estimate of Eq. 1's mean over all of them); 0 = all of them, as the paper does"""
+    vrama_select: Literal["embeddings", "frames"] = "embeddings"
+    """VRAMa: what the straight-through one-hots multiply. "embeddings": the world model's encodings of the m
+    multitask chunks (encoded once, without gradient); "frames": the frames, which then pass the encoder with a
+    backward pass into them. The forward pass is the same; the straight-through gradient differs (see README)"""
     address_layer_norm: bool = False
     """layer-normalise f_φ's per-step input layer (not in the paper; unnormalised rewards and states can saturate
     the GRU and collapse q to uniform, see the README)"""
@@ -1135,16 +1139,25 @@ def reinforce_loss(logits, index, advantage, standardize: bool):
     return -(advantage * log_q).mean()
 
 
-def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float, lam: float, starts: int = 0):
+def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float, lam: float, starts: int = 0,
+               select: str = "embeddings"):
     """Eq. 1: imagine from the posteriors of the selected chunks M_j and return −Σ_t V_λ (mean over starts).
 
     The agent stays fixed (frozen); the gradient reaches φ through the one-hots, the inputs of the world model.
+    select="embeddings" multiplies the one-hots with the encodings of the m chunks, "frames" with their frames:
+    the selected values are the same (a one-hot row picks one chunk); only the straight-through gradient differs.
     starts > 0 imagines from that many of the n·L posteriors, drawn at random: an unbiased estimate of the mean
     over all of them at a fraction of the cost (the posteriors themselves still filter every step of each chunk).
     """
-    obs, action = select_chunks(one_hot, m_batch["obs"]), select_chunks(one_hot, m_batch["action"])  # (n, L, ...)
+    action = select_chunks(one_hot, m_batch["action"])  # (n, L, A)
     with Freeze(agent):
-        post, _ = agent.wm.rssm.observe(agent.wm.encoder(obs), action)
+        if select == "frames":
+            embed = agent.wm.encoder(select_chunks(one_hot, m_batch["obs"]))  # (n, L, E)
+        else:  # the encoder's backward pass into 2,500 frames is most of what "frames" costs more
+            with torch.no_grad():
+                embed_m = agent.wm.encoder(m_batch["obs"])  # (m, L, E)
+            embed = select_chunks(one_hot, embed_m.float())  # (n, L, E)
+        post, _ = agent.wm.rssm.observe(embed, action)
         start = {k: v.flatten(0, 1) for k, v in post.items()}  # (n*L, ...), not detached: φ learns through it
         if 0 < starts < len(start["deter"]):
             keep = torch.randperm(len(start["deter"]), device=one_hot.device)[:starts]  # (starts,)
@@ -1178,7 +1191,7 @@ class Addressing:
         if self.method == "vrama":
             one_hot, index = straight_through_sample(logits)
             loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda,
-                              args.address_imagine_starts)
+                              args.address_imagine_starts, args.vrama_select)
         else:
             index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
             advantage = predicted_reward_sum(agent.wm, m_batch)[index]  # Eq. 2 (RRAMa)

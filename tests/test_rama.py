@@ -114,6 +114,28 @@ def test_vrama_start_subset_is_the_full_loss_when_it_covers_every_start():
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0  # φ still learns through a subset
 
 
+@pytest.mark.parametrize("obs_shape", [(3,), (64, 64, 3)])
+def test_vrama_selecting_embeddings_or_frames_is_the_same_forward_pass(obs_shape):
+    """A one-hot row picks one chunk, so encoding the picked frames equals picking the encodings: the loss is the
+    same. The straight-through gradients differ (pixel space against embedding space) but both reach the logits."""
+    args = rd.Args(obs_type="pixels" if len(obs_shape) == 3 else "state", cnn_depth=2, **SMALL)
+    agent = rd.Agent(obs_shape, 2, args)
+    rng = np.random.default_rng(0)
+    m = rd.to_torch(rd.synthetic_replay(obs_shape, 2, 2, 20, rng).sample(6, 5, rng), "cpu")
+    logits = torch.randn(4, 6, requires_grad=True)
+    torch.manual_seed(1)
+    one_hot, index = rd.straight_through_sample(logits)
+    losses, grads = [], []
+    for select in ("embeddings", "frames"):
+        torch.manual_seed(0)
+        losses.append(rd.vrama_loss(agent, one_hot, m, 3, 0.99, 0.95, select=select))
+        grads.append(torch.autograd.grad(losses[-1], logits, retain_graph=True)[0])
+    assert torch.allclose(losses[0], losses[1], rtol=1e-5, atol=1e-6)
+    assert all(torch.isfinite(g).all() and g.abs().sum() > 0 for g in grads)
+    assert not torch.allclose(grads[0], grads[1])
+    assert all(p.grad is None for p in agent.parameters())
+
+
 def test_address_layer_norm_keeps_the_gru_input_in_range():
     """Large unnormalised inputs (Meta-World rewards reach ≈10 a step, states are raw): with the layer norm the GRU
     sees O(1) inputs; without it they scale with the inputs and saturate the GRU."""
