@@ -482,6 +482,10 @@ class Replay:
     def sample(self, n: int, seq_len: int, rng: np.random.Generator) -> dict:
         return self.gather(*self.sample_ids(n, seq_len, rng), seq_len)
 
+    def chunk_rewards(self, episode_ids, starts, seq_len: int) -> np.ndarray:
+        """(n,) stored reward sums of the chunks: what RRAMa's bandit reward estimates on the current task."""
+        return np.array([self.episodes[e]["reward"][s:s + seq_len].sum() for e, s in zip(episode_ids, starts)])
+
     def grid_ids(self, seq_len: int, cap: int, rng: np.random.Generator):
         """Non-overlapping chunks of every episode (a random phase each), at most `cap` of them at random."""
         episode_ids, starts = [], []
@@ -1099,13 +1103,17 @@ class Addressing:
     def train(self, agent: Agent, x: dict, m_batch: dict, args: Args) -> dict:
         """(a) of Algorithm 2: score m multitask chunks against each x_i, sample j, step φ on Eq. 1, 2 or 3."""
         logits = address_logits(self.embed(x), self.embed(m_batch), self.stop_grad_x)  # (n, m)
+        metrics = {}
         if self.method == "vrama":
             one_hot, index = straight_through_sample(logits)
             loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda,
                               args.address_imagine_starts, args.vrama_select)
         else:
             index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
-            advantage = predicted_reward_sum(agent.wm, m_batch)[index]  # Eq. 2 (RRAMa)
+            bandit_reward = predicted_reward_sum(agent.wm, m_batch)  # (m,)
+            metrics["addressing/bandit_reward_picked"] = bandit_reward[index].mean()  # vs a uniform pick:
+            metrics["addressing/bandit_reward_uniform"] = bandit_reward.mean()
+            advantage = bandit_reward[index]  # Eq. 2 (RRAMa)
             if self.method == "rbrama":  # Eq. 3 (RbRAMa): the predicted reward sum of x_i as the baseline
                 advantage = advantage - predicted_reward_sum(agent.wm, x)
             loss = reinforce_loss(logits, index, advantage, args.address_standardize)
@@ -1114,7 +1122,7 @@ class Addressing:
         entropy = -(log_q.exp() * log_q).sum(-1).mean()
         return {"addressing/loss": loss.detach(), "addressing/entropy": entropy,
                 "addressing/entropy_uniform": torch.tensor(np.log(logits.shape[-1])),
-                "addressing/grad_norm": grad_norm}
+                "addressing/grad_norm": grad_norm, **metrics}
 
     @torch.no_grad()
     def refresh(self, multitask: Replay, seq_len: int, cap: int, rng, chunk_batch: int = 64):
@@ -1573,7 +1581,8 @@ def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addres
     return out
 
 
-def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int) -> dict:
+def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int,
+                  seq_len: int) -> dict:
     """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
     picked = [e for p in picks for e in p[0]]
     metrics = {"addressing/mixed_batches": len(picks) / updates}
@@ -1586,6 +1595,12 @@ def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressin
     pool = addressing.candidates[0] if addressing is not None and addressing.candidates is not None \
         else np.arange(len(multitask))
     metrics["addressing/candidate_return"] = float(np.mean([multitask.returns[e] for e in pool]))
+    # the same at the level of chunks: the stored reward sum of each picked chunk against the candidates'
+    metrics["addressing/picked_chunk_reward"] = float(np.mean([multitask.chunk_rewards(*p, seq_len).mean()
+                                                               for p in picks if len(p[0])]))
+    if addressing is not None and addressing.candidates is not None:
+        metrics["addressing/candidate_chunk_reward"] = float(multitask.chunk_rewards(*addressing.candidates,
+                                                                                     seq_len).mean())
     return metrics
 
 
@@ -1660,7 +1675,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
                 metrics.update({f"time/{k}_per_update": v / updates_per_round for k, v in timings.items()})
                 if args.method != "dreamer":
-                    metrics.update(picks_metrics(picks, multitask, addressing, updates_per_round))
+                    metrics.update(picks_metrics(picks, multitask, addressing, updates_per_round, args.seq_len))
                 metrics["charts/updates"] = state["updates"]
                 logger.log(env_steps, metrics)
                 save_checkpoint(checkpoint_path, agent, state)

@@ -239,6 +239,25 @@ def run(*flags, check=True):
     return run_script("rama_dreamer.py", *flags, check=check)
 
 
+def test_picks_metrics_compare_picked_chunks_with_the_candidates():
+    replay = rd.Replay()
+    for task, rewards in [("a", [0, 1, 2, 3, 4, 5]), ("b", [0, 10, 10, 10, 10, 10])]:
+        replay.add({"obs": np.zeros((6, 3), np.float32), "action": np.zeros((6, 1), np.float32),
+                    "reward": np.array(rewards, np.float32), "terminal": np.zeros(6, bool), "task": task})
+    assert replay.chunk_rewards([0, 0, 1], [1, 3, 0], 2).tolist() == [3.0, 7.0, 10.0]
+    addressing = rd.Addressing((3,), 1, rd.Args(obs_type="state", method="rrama", **SMALL), "cpu")
+    addressing.candidates = (np.array([0, 0, 1]), np.array([0, 2, 3]))  # chunk rewards 1, 5, 20
+    picks = [(np.array([1, 1]), np.array([1, 2])), (np.array([0]), np.array([4]))]  # chunk rewards 20, 20 | 9
+    m = rd.picks_metrics(picks, replay, addressing, updates=4, seq_len=2)
+    assert m["addressing/mixed_batches"] == 0.5
+    assert m["addressing/pick_fraction/a"] == pytest.approx(1 / 3)
+    assert m["addressing/pick_fraction/b"] == pytest.approx(2 / 3)
+    assert m["addressing/picked_return"] == pytest.approx((50 + 50 + 15) / 3)
+    assert m["addressing/candidate_return"] == pytest.approx((15 + 15 + 50) / 3)
+    assert m["addressing/picked_chunk_reward"] == pytest.approx((20 + 9) / 2)  # mean of per-update means
+    assert m["addressing/candidate_chunk_reward"] == pytest.approx((1 + 5 + 20) / 3)
+
+
 def metric_keys(run_path):
     with open(os.path.join(run_path, "metrics.jsonl")) as f:
         return set().union(*(json.loads(line) for line in f))
@@ -258,8 +277,12 @@ def test_every_method_runs_with_prior_dirs(tmp_path, prior_run, method):
     run_path = glob.glob(os.path.join(tmp_path, "*"))[0]
     keys = metric_keys(run_path)
     assert {"addressing/pick_fraction/walker-stand", "addressing/picked_return", "losses/world_model"} <= keys
+    assert "addressing/picked_chunk_reward" in keys
     if method != "uniform":
-        assert {"addressing/loss", "addressing/entropy", "addressing/refresh_seconds"} <= keys
+        assert {"addressing/loss", "addressing/entropy", "addressing/refresh_seconds",
+                "addressing/candidate_chunk_reward"} <= keys
+    if method in ("rrama", "rbrama"):
+        assert {"addressing/bandit_reward_picked", "addressing/bandit_reward_uniform"} <= keys
         assert glob.glob(os.path.join(run_path, "addressing", "q_*.png"))
 
 
