@@ -1200,7 +1200,8 @@ class Addressing:
         else:
             index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
             bandit_reward = predicted_reward_sum(agent.wm, m_batch)  # (m,)
-            metrics["addressing/bandit_reward_picked"] = bandit_reward[index].mean()  # vs a uniform pick:
+            # what the objective gains: the expected bandit reward of a pick under q against a uniform pick
+            metrics["addressing/bandit_reward_q"] = (logits.detach().softmax(-1) @ bandit_reward).mean()
             metrics["addressing/bandit_reward_uniform"] = bandit_reward.mean()
             advantage = bandit_reward[index]  # Eq. 2 (RRAMa)
             if self.method == "rbrama":  # Eq. 3 (RbRAMa): the predicted reward sum of x_i as the baseline
@@ -1238,8 +1239,10 @@ def mix_batch(x: dict, m_batch: dict) -> dict:
     return {k: torch.cat([x[k], m_batch[k]], 0) for k in x}
 
 
-def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str):
-    """Heat map of q̂(j | x_i): rows = current chunks, columns = candidates sorted by task then stored return."""
+def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str,
+                      chunk_rewards: Optional[np.ndarray] = None):
+    """Heat map of q̂(j | x_i): rows = current chunks, columns = candidates sorted by task then stored return.
+    Below it: each candidate's episode return (line) and, if given, the chunk's own reward sum (dots)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1263,6 +1266,10 @@ def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title
     ax.set_title(title, pad=14)
     ax_ret.plot(np.arange(len(order)), returns[order], lw=1)
     ax_ret.set_ylabel("return")
+    if chunk_rewards is not None:
+        ax_chunk = ax_ret.twinx()
+        ax_chunk.scatter(np.arange(len(order)), chunk_rewards[order], s=1, c="tab:orange")
+        ax_chunk.set_ylabel("chunk reward", color="tab:orange", fontsize=8)
     ax_ret.set_xlabel("candidate chunk j (sorted by task, then stored episode return)")
     return fig
 
@@ -1781,7 +1788,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     cand_episodes = addressing.candidates[0]
                     fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
                                             np.array([multitask.returns[e] for e in cand_episodes]),
-                                            f"{args.method} on {env.task_name}, step {env_steps}")
+                                            f"{args.method} on {env.task_name}, step {env_steps}",
+                                            multitask.chunk_rewards(*addressing.candidates, args.seq_len))
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
                     logger.writer.add_figure("addressing/probabilities", fig, env_steps)
                     plt.close(fig)

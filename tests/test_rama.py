@@ -282,7 +282,7 @@ def test_every_method_runs_with_prior_dirs(tmp_path, prior_run, method):
         assert {"addressing/loss", "addressing/entropy", "addressing/refresh_seconds",
                 "addressing/candidate_chunk_reward"} <= keys
     if method in ("rrama", "rbrama"):
-        assert {"addressing/bandit_reward_picked", "addressing/bandit_reward_uniform"} <= keys
+        assert {"addressing/bandit_reward_q", "addressing/bandit_reward_uniform"} <= keys
         assert glob.glob(os.path.join(run_path, "addressing", "q_*.png"))
 
 
