@@ -1242,35 +1242,36 @@ def mix_batch(x: dict, m_batch: dict) -> dict:
 def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str,
                       chunk_rewards: Optional[np.ndarray] = None):
     """Heat map of q̂(j | x_i): rows = current chunks, columns = candidates sorted by task then stored return.
-    Below it: each candidate's episode return (line) and, if given, the chunk's own reward sum (dots)."""
+    Below it: each candidate's episode return and, if given, the chunk's own reward sum."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     order = np.lexsort((returns, np.array(tasks)))
-    fig, (ax, ax_ret) = plt.subplots(2, 1, figsize=(9, 4.5), sharex=True, height_ratios=[4, 1])
+    rows = 2 if chunk_rewards is None else 3
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 3.5 + rows), sharex=True, height_ratios=[4] + [1] * (rows - 1))
+    ax, ax_ret = axes[0], axes[1]
     # log-ratio to the uniform distribution: red = picked more often than uniform, blue = less
     ratio = np.log10(np.maximum(probs[:, order] * probs.shape[1], 1e-12))
     image = ax.imshow(ratio, aspect="auto", interpolation="nearest", cmap="RdBu_r", vmin=-2, vmax=2)
-    fig.colorbar(image, ax=[ax, ax_ret], label="log10(q̂(j | x_i) / uniform)")
+    fig.colorbar(image, ax=list(axes), label="log10(q̂(j | x_i) / uniform)")
     sorted_tasks = [tasks[i] for i in order]
     for i in range(1, len(order)):  # task boundaries
         if sorted_tasks[i] != sorted_tasks[i - 1]:
-            ax.axvline(i - 0.5, color="white", lw=1)
-            ax_ret.axvline(i - 0.5, color="gray", lw=1)
+            for a in axes:
+                a.axvline(i - 0.5, color="white" if a is ax else "gray", lw=1)
     for task in dict.fromkeys(sorted_tasks):
         idx = [i for i, t in enumerate(sorted_tasks) if t == task]
         ax.text(np.mean(idx), -0.8, task, ha="center", va="bottom", fontsize=8)
     ax.set_ylabel("current chunk x_i")
     ax.set_title(title, pad=14)
     ax_ret.plot(np.arange(len(order)), returns[order], lw=1)
-    ax_ret.set_ylabel("return")
+    ax_ret.set_ylabel("episode\nreturn", fontsize=8)
     if chunk_rewards is not None:
-        ax_chunk = ax_ret.twinx()
-        ax_chunk.scatter(np.arange(len(order)), chunk_rewards[order], s=1, c="tab:orange")
-        ax_chunk.set_ylabel("chunk reward", color="tab:orange", fontsize=8)
-    ax_ret.set_xlabel("candidate chunk j (sorted by task, then stored episode return)")
+        axes[2].scatter(np.arange(len(order)), chunk_rewards[order], s=1)
+        axes[2].set_ylabel("chunk\nreward", fontsize=8)
+    axes[-1].set_xlabel("candidate chunk j (sorted by task, then stored episode return)")
     return fig
 
 
