@@ -1095,6 +1095,7 @@ class Addressing:
         if self.stop_grad_x is None:
             self.stop_grad_x = args.method in ("rrama", "rbrama")
         self.candidates = None  # (episode ids, starts) of the chunks embedded in D
+        self.candidate_rewards = None  # (N_c,) their stored reward sums, for the logs and the picture
         self.D = None  # (N_c, U)
 
     def embed(self, batch: dict):
@@ -1129,6 +1130,7 @@ class Addressing:
     def refresh(self, multitask: Replay, seq_len: int, cap: int, rng, chunk_batch: int = 64):
         """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks (once per C updates)."""
         self.candidates = multitask.grid_ids(seq_len, cap, rng)
+        self.candidate_rewards = multitask.chunk_rewards(*self.candidates, seq_len)
         parts = []
         for i in range(0, len(self.candidates[0]), chunk_batch):
             ids = (self.candidates[0][i:i + chunk_batch], self.candidates[1][i:i + chunk_batch])
@@ -1607,8 +1609,7 @@ def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressin
     metrics["addressing/picked_chunk_reward"] = float(np.mean([multitask.chunk_rewards(*p, seq_len).mean()
                                                                for p in picks if len(p[0])]))
     if addressing is not None and addressing.candidates is not None:
-        metrics["addressing/candidate_chunk_reward"] = float(multitask.chunk_rewards(*addressing.candidates,
-                                                                                     seq_len).mean())
+        metrics["addressing/candidate_chunk_reward"] = float(addressing.candidate_rewards.mean())
     return metrics
 
 
@@ -1701,7 +1702,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
                                             np.array([multitask.returns[e] for e in cand_episodes]),
                                             f"{args.method} on {env.task_name}, step {env_steps}",
-                                            multitask.chunk_rewards(*addressing.candidates, args.seq_len))
+                                            addressing.candidate_rewards)
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
                     logger.writer.add_figure("addressing/probabilities", fig, env_steps)
                     plt.close(fig)

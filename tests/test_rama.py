@@ -247,6 +247,7 @@ def test_picks_metrics_compare_picked_chunks_with_the_candidates():
     assert replay.chunk_rewards([0, 0, 1], [1, 3, 0], 2).tolist() == [3.0, 7.0, 10.0]
     addressing = rd.Addressing((3,), 1, rd.Args(obs_type="state", method="rrama", **SMALL), "cpu")
     addressing.candidates = (np.array([0, 0, 1]), np.array([0, 2, 3]))  # chunk rewards 1, 5, 20
+    addressing.candidate_rewards = replay.chunk_rewards(*addressing.candidates, 2)  # as refresh() sets them
     picks = [(np.array([1, 1]), np.array([1, 2])), (np.array([0]), np.array([4]))]  # chunk rewards 20, 20 | 9
     m = rd.picks_metrics(picks, replay, addressing, updates=4, seq_len=2)
     assert m["addressing/mixed_batches"] == 0.5
