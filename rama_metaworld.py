@@ -152,6 +152,10 @@ class Args:
     """KL below this many nats is not penalised; None = 3 for pixels (the paper), 0 for state observations (a
     low-dimensional state's KL sits below 3 nats, where the clamp would leave the prior untrained and imagination
     blind to actions)"""
+    obs_std: Optional[float] = None
+    """standard deviation of the decoder's Gaussian p(o|s); None = 1 for pixels (the paper), 0.1 for state
+    observations (a handful of unit-variance dims pays too little for its KL: at 1 the posterior carried the cart
+    position of cartpole to within about its own spread, and the agent could not see it drift)"""
     kl_scale: float = 1.0
     """weight of the KL term"""
     model_lr: float = 6e-4
@@ -237,8 +241,9 @@ class Args:
 def resolve_defaults(args: Args) -> Args:
     """Fill the defaults that depend on the environment (right after parsing; saved resolved in args.json)."""
     free_nats = args.free_nats if args.free_nats is not None else (3.0 if args.obs_type == "pixels" else 0.0)
+    obs_std = args.obs_std if args.obs_std is not None else (1.0 if args.obs_type == "pixels" else 0.1)
     return dataclasses.replace(args, horizon=args.horizon or 15, time_limit=args.time_limit or 500,
-                               free_nats=free_nats)
+                               free_nats=free_nats, obs_std=obs_std)
 
 
 def check_args(args: Args) -> None:
@@ -254,6 +259,8 @@ def check_args(args: Args) -> None:
     for name in ["eval_episodes", "address_imagine_starts"]:
         if getattr(args, name) < 0:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
+    if args.obs_std is not None and args.obs_std <= 0:
+        raise UsageError(f"--obs-std must be > 0 (got {args.obs_std})")
     if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
         raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
     if not 0.0 <= args.address_prob <= 1.0 or not 0.0 <= args.current_fraction <= 1.0:
@@ -964,14 +971,14 @@ def kl_with_free_nats(post: dict, prior: dict, free_nats: float, mask=None):
     return torch.clamp(kl, min=free_nats), kl
 
 
-def gaussian_loglik(mean, target, event_dims: int):
-    """log N(target; mean, 1) summed over the last event_dims dims: (B, T, ...) -> (B, T)."""
-    loglik = -0.5 * (target - mean) ** 2 - 0.5 * np.log(2 * np.pi)
+def gaussian_loglik(mean, target, event_dims: int, std: float = 1.0):
+    """log N(target; mean, std²) summed over the last event_dims dims: (B, T, ...) -> (B, T)."""
+    loglik = -0.5 * ((target - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi)
     return loglik.flatten(2).sum(-1) if event_dims else loglik
 
 
 def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: float, reward_mask=None,
-                     model_mask=None):
+                     model_mask=None, obs_std: float = 1.0):
     """ELBO of a batch of chunks: (KL with free nats) - log p(o|s) - log p(r|s). Returns loss, posts, metrics.
 
     reward_mask (B,) drops the reward term on chunks whose reward belongs to another task; model_mask (B,) drops
@@ -981,7 +988,7 @@ def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: fl
     post, prior = wm.rssm.observe(embed, batch["action"])
     feat = wm.rssm.feat(post)  # (B, T, F)
     obs_dims = 3 if batch["obs"].dim() == 5 else 1
-    obs_loglik = masked_mean(gaussian_loglik(wm.decoder(feat), batch["obs"], obs_dims), model_mask)
+    obs_loglik = masked_mean(gaussian_loglik(wm.decoder(feat), batch["obs"], obs_dims, obs_std), model_mask)
     if model_mask is not None:
         reward_mask = model_mask if reward_mask is None else reward_mask * model_mask
     reward_loglik = masked_mean(gaussian_loglik(wm.reward(feat).squeeze(-1), batch["reward"], 0), reward_mask)
@@ -1086,7 +1093,8 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     """One Dreamer update: world model on the batch, then actor and value in imagination from its posteriors."""
     timings = {}
     t0 = time.perf_counter()
-    wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask)
+    wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask,
+                                              args.obs_std)
     metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(), args.grad_clip)
     timings["world_model"] = time.perf_counter() - t0
 

@@ -134,11 +134,36 @@ def test_gaussian_loglik():
     mean, target = torch.zeros(1, 1, 2), torch.tensor([[[1.0, 2.0]]])
     expected = -0.5 * (1 + 4) - math.log(2 * math.pi)
     assert rd.gaussian_loglik(mean, target, 1).item() == pytest.approx(expected)
+    # std 0.5: squared errors count 4x, and each dim's normaliser gains -log 0.5
+    expected = -0.5 * (4 + 16) - 2 * math.log(0.5) - math.log(2 * math.pi)
+    assert rd.gaussian_loglik(mean, target, 1, std=0.5).item() == pytest.approx(expected)
+
+
+def test_obs_std_default_depends_on_the_observations():
+    """1 for pixels (the paper's unit-variance decoder); 0.1 for a state vector, whose few dims would otherwise be
+    cheaper to blur than to encode; the decoder term of the world-model loss uses it."""
+    assert rd.resolve_defaults(rd.Args()).obs_std == 1.0
+    assert rd.resolve_defaults(rd.Args(obs_type="state")).obs_std == 0.1
+    assert rd.resolve_defaults(rd.Args(obs_type="state", obs_std=0.5)).obs_std == 0.5
+    args = rd.Args(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, batch_size=2, seq_len=4)
+    torch.manual_seed(0)
+    wm = rd.WorldModel((5,), 2, args)
+    batch = rd.to_torch(rd.synthetic_replay((5,), 2, 1, 10, np.random.default_rng(0)).sample(2, 4,
+                                                                                          np.random.default_rng(0)),
+                        "cpu")
+    torch.manual_seed(1)  # the same posterior samples in both calls
+    unit = rd.world_model_loss(wm, batch, 0.0, 1.0, obs_std=1.0)[2]["losses/obs_loglik"]
+    torch.manual_seed(1)
+    tenth = rd.world_model_loss(wm, batch, 0.0, 1.0, obs_std=0.1)[2]["losses/obs_loglik"]
+    # same squared error e: unit = -e/2 - 5c, tenth = -100 e/2 - 5 log 0.1 - 5c (c = log 2π / 2, 5 dims)
+    squared = -2 * (unit + 5 * 0.5 * math.log(2 * math.pi))
+    expected = -50 * squared - 5 * math.log(0.1) - 5 * 0.5 * math.log(2 * math.pi)
+    assert tenth.item() == pytest.approx(expected.item(), rel=1e-5)
 
 
 def test_actor_loss_trains_only_the_actor():
-    args = rd.Args(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=3.0, batch_size=2,
-                   seq_len=4)
+    args = rd.Args(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=3.0, obs_std=1.0,
+                   batch_size=2, seq_len=4)
     agent = rd.Agent((5,), 2, args)
     rng = np.random.default_rng(0)
     replay = rd.synthetic_replay((5,), 2, episodes=1, length=10, rng=rng)

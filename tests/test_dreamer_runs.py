@@ -117,6 +117,7 @@ def test_resume_after_sigkill(tmp_path):
 @pytest.mark.parametrize("flags, flag_named", [
     (["--batch-size", "0"], "--batch-size"),
     (["--seq-len", "-3"], "--seq-len"),
+    (["--obs-std", "0"], "--obs-std"),
     (["--env-id", "dmc/walker-fly"], "--env-id"),
     (["--env-id", "atari/pong"], "--env-id"),
     (["--device", "cuda:7"] if not os.path.exists("/dev/nvidia0") else ["--device", "tpu"], "--device"),

@@ -10,8 +10,8 @@ import torch
 import rama_dreamer as rd
 from helpers import TINY, run_script
 
-SMALL = dict(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=3.0, batch_size=4, seq_len=5,
-             address_units=8, address_cnn_depth=2, address_batch=6)
+SMALL = dict(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=3.0, obs_std=1.0,
+             batch_size=4, seq_len=5, address_units=8, address_cnn_depth=2, address_batch=6)
 
 
 def test_straight_through_selects_exactly_and_passes_gradients():

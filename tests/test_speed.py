@@ -12,7 +12,7 @@ import rama_dreamer as rd
 from helpers import TINY, run_script
 
 PIXEL = dict(deter_size=16, stoch_size=4, hidden_size=16, mlp_units=16, cnn_depth=4, horizon=3, batch_size=3,
-             seq_len=4, free_nats=3.0)
+             seq_len=4, free_nats=3.0, obs_std=1.0)
 
 
 def _pixel_batch(seed=0, n=3, seq_len=4):
@@ -80,7 +80,7 @@ def test_one_value_pass_matches_the_two_pass_update():
     """train_step computes the value once for both losses; its parameter updates equal those of the plain recipe:
     actor loss with the value frozen, then the value loss on a second pass over detached features."""
     args = rd.Args(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=4,
-                   free_nats=0.0, batch_size=3, seq_len=5)
+                   free_nats=0.0, obs_std=1.0, batch_size=3, seq_len=5)
     torch.manual_seed(0)
     agent = rd.Agent((3,), 2, args)
     reference = copy.deepcopy(agent)
@@ -121,7 +121,7 @@ def test_compiled_rssm_gives_the_eager_losses(monkeypatch):
 
     monkeypatch.setattr(inductor_config, "fallback_random", True)  # compiled code draws eager's random numbers
     args = rd.Args(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3,
-                   batch_size=3, seq_len=5, free_nats=0.0)
+                   batch_size=3, seq_len=5, free_nats=0.0, obs_std=1.0)
     torch.manual_seed(0)
     eager = rd.Agent((3,), 2, args)
     compiled = rd.Agent((3,), 2, rd.Args(**{**vars(args), "compile": True}))
