@@ -1537,6 +1537,7 @@ def setup_run(args: Args):
             raise UsageError(f"--resume {args.resume}: no args.json there (not a run folder)")
         with open(args_path) as f:
             saved = json.load(f)
+        saved.setdefault("obs_std", 1.0)  # runs saved before --obs-std existed had a unit-variance decoder
         valid = {f.name for f in dataclasses.fields(Args)}
         args = dataclasses.replace(Args(**{k: v for k, v in saved.items() if k in valid}), resume=args.resume,
                                    device=args.device)

@@ -1,4 +1,6 @@
 """Exact math of the Dreamer core on small hand-checked cases."""
+import dataclasses
+import json
 import math
 import os
 
@@ -189,3 +191,11 @@ def test_free_nats_default_depends_on_the_observations():
     (clamped,) = torch.autograd.grad(rd.kl_with_free_nats(post, prior, free_nats=3.0)[0], post["mean"])
     (free,) = torch.autograd.grad(rd.kl_with_free_nats(post, prior, free_nats=0.0)[0], post["mean"])
     assert torch.all(clamped == 0) and torch.all(free != 0)
+
+
+def test_resume_of_a_run_saved_before_obs_std_keeps_the_unit_decoder(tmp_path):
+    saved = dataclasses.asdict(rd.resolve_defaults(rd.Args(obs_type="state")))
+    del saved["obs_std"]  # an args.json written before the flag existed
+    (tmp_path / "args.json").write_text(json.dumps(saved))
+    args, _ = rd.setup_run(rd.Args(resume=str(tmp_path)))
+    assert args.obs_type == "state" and args.obs_std == 1.0
