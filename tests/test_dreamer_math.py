@@ -150,9 +150,8 @@ def test_obs_std_default_depends_on_the_observations():
     args = rd.Args(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, batch_size=2, seq_len=4)
     torch.manual_seed(0)
     wm = rd.WorldModel((5,), 2, args)
-    batch = rd.to_torch(rd.synthetic_replay((5,), 2, 1, 10, np.random.default_rng(0)).sample(2, 4,
-                                                                                          np.random.default_rng(0)),
-                        "cpu")
+    rng = np.random.default_rng(0)
+    batch = rd.to_torch(rd.synthetic_replay((5,), 2, 1, 10, rng).sample(2, 4, rng), "cpu")
     torch.manual_seed(1)  # the same posterior samples in both calls
     unit = rd.world_model_loss(wm, batch, 0.0, 1.0, obs_std=1.0)[2]["losses/obs_loglik"]
     torch.manual_seed(1)

@@ -92,7 +92,7 @@ def test_one_value_pass_matches_the_two_pass_update():
 
     torch.manual_seed(1)  # the plain recipe, step by step, with the same random draws
     ref = reference
-    loss, post, _ = rd.world_model_loss(ref.wm, batch, args.free_nats, args.kl_scale)
+    loss, post, _ = rd.world_model_loss(ref.wm, batch, args.free_nats, args.kl_scale, obs_std=args.obs_std)
     ref.model_opt.zero_grad()
     loss.backward()
     nn.utils.clip_grad_norm_(ref.wm.parameters(), args.grad_clip)
