@@ -213,9 +213,13 @@ class Args:
     """VRAMa: what the straight-through one-hots multiply. "embeddings": the world model's encodings of the m
     multitask chunks (encoded once, without gradient); "frames": the frames, which then pass the encoder with a
     backward pass into them. The forward pass is the same; the straight-through gradient differs (see README)"""
+    vrama_reduction: Literal["mean", "sum"] = "mean"
+    """VRAMa: "mean" = γ^t-weighted mean of V_λ over steps and starts (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
     address_layer_norm: bool = False
-    """layer-normalise f_φ's per-step input layer (not in the paper; unnormalised rewards and states can saturate
-    the GRU and collapse q to uniform, see the README)"""
+    """layer-normalise f_φ's per-step input layer (not in the paper; unnormalised states can saturate the GRU and
+    collapse q to uniform, see the README)"""
+    address_reward_input: bool = False
+    """feed f_φ the stored reward of each step too (not in the paper: f_φ reads actions and observations only)"""
     address_stop_grad_x: Optional[bool] = None
     """stop the gradient through f(x); None = on for rrama and rbrama, off for vrama"""
     address_standardize: bool = True
@@ -254,6 +258,8 @@ def check_args(args: Args) -> None:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
     if args.obs_std is not None and args.obs_std <= 0:
         raise UsageError(f"--obs-std must be > 0 (got {args.obs_std})")
+    if args.obs_type == "pixels":
+        decoder_last_layer(args.image_size)  # raises a UsageError naming --image-size
     if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
         raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
     if not 0.0 <= args.address_prob <= 1.0 or not 0.0 <= args.current_fraction <= 1.0:
@@ -655,44 +661,36 @@ class ConvEncoder(nn.Module):
         return x.float().unflatten(0, obs.shape[:2])
 
 
-class UpConv(nn.ConvTranspose2d):
-    """Transposed conv (kernel 4, stride 2) whose output padding is added as a border of bias: the rows and columns
-    it adds receive no input, and a plain transposed conv plus a pad runs about 2x faster on CPU than oneDNN's
-    padded one. Same parameters and same output as nn.ConvTranspose2d(in_ch, out_ch, 4, 2, output_padding=pad)."""
-
-    def __init__(self, in_ch: int, out_ch: int, pad):
-        super().__init__(in_ch, out_ch, 4, 2)
-        self.pad = tuple(pad)  # (rows, cols) added at the bottom and at the right
-
-    def forward(self, x):
-        if not any(self.pad):
-            return super().forward(x)
-        x = F.pad(F.conv_transpose2d(x, self.weight, None, 2), (0, self.pad[1], 0, self.pad[0]))
-        return x + self.bias.to(x.dtype)[:, None, None]
+def decoder_last_layer(size: int) -> tuple:
+    """(kernel, stride) of the decoder's last transposed conv along an image side of `size` pixels. Dreamer v1's
+    layers grow 1 -> 5 -> 13 -> 30 -> 64 (kernels 5, 5, 6, 6, stride 2); the last maps 30 to 29·stride + kernel, so
+    stride = (size - 1) // 30 and kernel = size - 29·stride: v1's (6, 2) at 64, (9, 3) for the kitchen's 96."""
+    stride = (size - 1) // 30
+    if stride < 1:
+        raise UsageError(f"--image-size {size}: Dreamer v1's decoder needs at least 31 pixels a side")
+    return size - 29 * stride, stride
 
 
 class ConvDecoder(nn.Module):
-    """Mirror of the encoder: features -> mean image (B, T, 3, H, W); output paddings land on H, W exactly."""
+    """Dreamer v1's decoder: features -> dense 32·depth at 1x1 -> transposed convs (kernels 5, 5, 6, 6, stride 2,
+    depths 4d, 2d, d, 3) -> mean image (B, T, 3, H, W). A side other than 64 changes the last layer alone (above)."""
 
     bf16, channels_last = False, False  # set by set_speed_options (--precision, --channels-last)
 
     def __init__(self, feat_size: int, obs_shape, depth: int):
         super().__init__()
         height, width, channels = obs_shape
-        hs, ws = conv_sizes(height), conv_sizes(width)
-        self._start = (depth * 8, hs[-1], ws[-1])
-        self.linear = nn.Linear(feat_size, int(np.prod(self._start)))
-        layers, in_ch = [], depth * 8
-        for i in range(4):  # sizes go hs[4] -> hs[3] -> ... -> hs[0]
-            out_ch = channels if i == 3 else depth * 2 ** (2 - i)
-            pad = (hs[3 - i] - ((hs[4 - i] - 1) * 2 + 4), ws[3 - i] - ((ws[4 - i] - 1) * 2 + 4))
-            layers += [UpConv(in_ch, out_ch, pad)] + ([nn.ReLU()] if i < 3 else [])
-            in_ch = out_ch
-        self.net = nn.Sequential(*layers)
+        (kh, sh), (kw, sw) = decoder_last_layer(height), decoder_last_layer(width)
+        self.linear = nn.Linear(feat_size, 32 * depth)
+        self.net = nn.Sequential(
+            nn.ConvTranspose2d(32 * depth, 4 * depth, 5, 2), nn.ReLU(),  # (4d, 5, 5)
+            nn.ConvTranspose2d(4 * depth, 2 * depth, 5, 2), nn.ReLU(),  # (2d, 13, 13)
+            nn.ConvTranspose2d(2 * depth, depth, 6, 2), nn.ReLU(),  # (d, 30, 30)
+            nn.ConvTranspose2d(depth, channels, (kh, kw), (sh, sw)))  # (3, H, W)
 
     def forward(self, feat):  # (B, T, F) -> (B, T, 3, H, W)
         with torch.autocast(feat.device.type, torch.bfloat16, enabled=self.bf16):
-            x = self.linear(feat.flatten(0, 1)).view(-1, *self._start)  # (B*T, 8*depth, h, w)
+            x = self.linear(feat.flatten(0, 1))[:, :, None, None]  # (B*T, 32*depth, 1, 1)
             if self.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             x = self.net(x)
@@ -848,21 +846,26 @@ def tanh_normal(out, init_std, min_std, mean_scale):
 class AddressNet(nn.Module):
     """f_φ: a chunk of trajectory -> an embedding (B, units).
 
-    Its own encoder (not the world model's: the features that make a good addressing are not those that make a
-    good reconstruction) reads each frame; [frame features, action, reward] pass an ELU layer into a GRU whose
-    last output is the embedding. layer_norm (not in the paper) normalises that layer before the ELU: unnormalised
-    rewards and states can saturate the GRU, so that every chunk gets the same embedding and q turns uniform.
+    Section 4.2: a GRU over "a sequence of actions concatenated with observation embeddings obtained from CNN"; the
+    last GRU output is the embedding. Its own encoder (not the world model's: the features that make a good
+    addressing are not those that make a good reconstruction) reads each frame; [frame features, action] pass an ELU
+    layer into the GRU. reward_input (not in the paper) appends the stored reward to each step's input. layer_norm
+    (not in the paper) normalises that layer before the ELU: unnormalised states can saturate the GRU, so that every
+    chunk gets the same embedding and q turns uniform.
     """
 
-    def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int, layer_norm: bool = False):
+    def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int, layer_norm: bool = False,
+                 reward_input: bool = False):
         super().__init__()
         self.encoder = ConvEncoder(obs_shape, cnn_depth) if len(obs_shape) == 3 else MLPEncoder(obs_shape[0], units)
-        self.inp = nn.Sequential(nn.Linear(self.encoder.embed_size + action_size + 1, units),
+        self.reward_input = reward_input
+        self.inp = nn.Sequential(nn.Linear(self.encoder.embed_size + action_size + int(reward_input), units),
                                  nn.LayerNorm(units) if layer_norm else nn.Identity(), nn.ELU())
         self.gru = nn.GRU(units, units, batch_first=True)
 
-    def forward(self, obs, action, reward):  # (B, T, ...) -> (B, units)
-        x = self.inp(torch.cat([self.encoder(obs), action, reward[..., None]], -1))  # (B, T, units)
+    def forward(self, obs, action, reward=None):  # (B, T, ...) -> (B, units)
+        parts = [self.encoder(obs), action] + ([reward[..., None]] if self.reward_input else [])
+        x = self.inp(torch.cat(parts, -1))  # (B, T, units)
         return self.gru(x)[0][:, -1]
 
 
@@ -1064,8 +1067,12 @@ def reinforce_loss(logits, index, advantage, standardize: bool):
 
 
 def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float, lam: float, starts: int = 0,
-               select: str = "embeddings"):
-    """Eq. 1: imagine from the posteriors of the selected chunks M_j and return −Σ_t V_λ (mean over starts).
+               select: str = "embeddings", reduction: str = "mean"):
+    """Eq. 1: imagine from the posteriors of the selected chunks M_j; the loss is −V_λ along the imagined steps.
+
+    reduction="mean": the γ^t-weighted mean over steps and starts, Dreamer's actor loss for the same E Σ_t V_λ
+    (Section 3 writes the actor's objective so too); "sum": −Σ_t V_λ(s_t) as Eq. 1 reads, averaged over starts. The
+    two differ by a factor (H-1) and the γ^t weights: Adam's steps barely see a constant factor, clipping does.
 
     The agent stays fixed (frozen); the gradient reaches φ through the one-hots, the inputs of the world model.
     select="embeddings" multiplies the one-hots with the encodings of the m chunks, "frames" with their frames:
@@ -1087,7 +1094,9 @@ def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float,
             keep = torch.randperm(len(start["deter"]), device=one_hot.device)[:starts]  # (starts,)
             start = {k: v[keep] for k, v in start.items()}
         feats = imagine(agent.wm, agent.actor, start, horizon)
-        returns, weights, _ = imagined_returns(agent.wm, agent.value, feats, gamma, lam)
+        returns, weights, _ = imagined_returns(agent.wm, agent.value, feats, gamma, lam)  # (H-1, N) each
+        if reduction == "sum":
+            return -returns.sum(0).mean()
         return -(weights * returns).mean()
 
 
@@ -1096,7 +1105,7 @@ class Addressing:
 
     def __init__(self, obs_shape, action_size: int, args: Args, device):
         self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth,
-                              args.address_layer_norm)
+                              args.address_layer_norm, args.address_reward_input)
         self.net = set_speed_options(self.net, args.precision, args.channels_last).to(device)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr)
         self.method, self.device = args.method, device
@@ -1117,7 +1126,7 @@ class Addressing:
         if self.method == "vrama":
             one_hot, index = straight_through_sample(logits)
             loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda,
-                              args.address_imagine_starts, args.vrama_select)
+                              args.address_imagine_starts, args.vrama_select, args.vrama_reduction)
         else:
             index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
             bandit_reward = predicted_reward_sum(agent.wm, m_batch)  # (m,)
@@ -1538,6 +1547,7 @@ def setup_run(args: Args):
         with open(args_path) as f:
             saved = json.load(f)
         saved.setdefault("obs_std", 1.0)  # runs saved before --obs-std existed had a unit-variance decoder
+        saved.setdefault("address_reward_input", True)  # and f_φ read the stored rewards before the flag existed
         valid = {f.name for f in dataclasses.fields(Args)}
         args = dataclasses.replace(Args(**{k: v for k, v in saved.items() if k in valid}), resume=args.resume,
                                    device=args.device)

@@ -124,12 +124,29 @@ def test_load_episode_names_bad_file(tmp_path):
 
 
 @pytest.mark.parametrize("shape", [(64, 64, 3), (64, 96, 3)])
-def test_decoder_mirrors_encoder(shape):
+def test_encoder_and_decoder_shapes(shape):
     encoder = rd.ConvEncoder(shape, depth=4)
     decoder = rd.ConvDecoder(10, shape, depth=4)
     obs = torch.zeros(2, 3, shape[2], shape[0], shape[1])
     assert encoder(obs).shape == (2, 3, encoder.embed_size)
-    assert decoder(torch.zeros(2, 3, 10)).shape == obs.shape
+    assert decoder(torch.zeros(2, 3, 10)).shape == obs.shape  # the kitchen: (3, 64, 96)
+
+
+def test_dreamer_v1_parameter_counts():
+    """Depth 32, 230 feature units (stoch 30 + deter 200), walker's 6 actions: Dreamer v1's counts, by hand.
+    Decoder: dense 230->1024 (236,544); convT 1024->128 k5 (3,276,928); 128->64 k5 (204,864); 64->32 k6 (73,760);
+    32->3 k6 (3,459). Encoder: convs 3->32, 32->64, 64->128, 128->256, k4 (1,568 + 32,832 + 131,200 + 524,544).
+    RSSM: dense 36->200 (7,400); GRU 200->200 (241,200); dense 200->200 and 200->60 on both the prior side
+    (40,200 + 12,060) and the posterior side ([h, e] 1224->200: 245,000, then 12,060)."""
+    count = lambda module: sum(p.numel() for p in module.parameters())  # noqa: E731
+    assert count(rd.ConvDecoder(230, (64, 64, 3), 32)) == 3_795_555
+    assert count(rd.ConvEncoder((64, 64, 3), 32)) == 690_144
+    assert count(rd.RSSM(6, 1024)) == 557_920
+    # the kitchen's 96-pixel width changes only the last layer: kernel 6x9, stride 2x3 (32*3*54 + 3 = 5,187 params)
+    assert count(rd.ConvDecoder(230, (64, 96, 3), 32)) == 3_795_555 - 3_459 + 5_187
+    assert rd.decoder_last_layer(64) == (6, 2) and rd.decoder_last_layer(96) == (9, 3)
+    with pytest.raises(rd.UsageError, match="--image-size"):
+        rd.check_args(rd.resolve_defaults(rd.Args(image_size=24)))
 
 
 def test_gaussian_loglik():

@@ -137,15 +137,55 @@ def test_vrama_selecting_embeddings_or_frames_is_the_same_forward_pass(obs_shape
 
 
 def test_address_layer_norm_keeps_the_gru_input_in_range():
-    """Large unnormalised inputs (Meta-World rewards reach ≈10 a step, states are raw): with the layer norm the GRU
-    sees O(1) inputs; without it they scale with the inputs and saturate the GRU."""
+    """Large unnormalised inputs (raw states): with the layer norm the GRU sees O(1) inputs; without it they scale
+    with the inputs and saturate the GRU."""
     torch.manual_seed(0)
-    obs, action, reward = 100 * torch.randn(2, 5, 3), torch.randn(2, 5, 2), 10 * torch.rand(2, 5)
+    obs, action = 100 * torch.randn(2, 5, 3), torch.randn(2, 5, 2)
     for layer_norm, bounded in ((True, True), (False, False)):
         net = rd.AddressNet((3,), 2, units=16, cnn_depth=2, layer_norm=layer_norm)
-        gru_input = net.inp(torch.cat([net.encoder(obs), action, reward[..., None]], -1))  # (2, 5, 16)
+        gru_input = net.inp(torch.cat([net.encoder(obs), action], -1))  # (2, 5, 16)
         assert (gru_input.abs().max() < 5) == bounded
     assert not rd.Args().address_layer_norm  # off by default: the paper's f_φ
+
+
+@pytest.mark.parametrize("obs_shape", [(3,), (64, 64, 3)])
+def test_address_net_reads_actions_and_observations_not_rewards(obs_shape):
+    """Section 4.2: f_φ consumes actions concatenated with observation embeddings. At the defaults the stored
+    rewards of a chunk do not change its embedding; the actions and the observations do."""
+    torch.manual_seed(0)
+    args = rd.Args(**SMALL)
+    assert not args.address_reward_input
+    addressing = rd.Addressing(obs_shape, 2, args, "cpu")
+    rng = np.random.default_rng(0)
+    batch = rd.to_torch(rd.synthetic_replay(obs_shape, 2, 2, 20, rng).sample(3, 5, rng), "cpu")
+    emb = addressing.embed(batch)  # (3, units)
+    for key, change in (("reward", 100.0), ("action", 0.5), ("obs", 0.5)):
+        changed = {**batch, key: batch[key] + change}
+        assert torch.equal(addressing.embed(changed), emb) == (key == "reward"), key
+    # --address-reward-input: one more input column, and then the rewards do matter
+    net = rd.AddressNet(obs_shape, 2, units=8, cnn_depth=2, reward_input=True)
+    plain = rd.AddressNet(obs_shape, 2, units=8, cnn_depth=2)
+    assert net.inp[0].in_features == plain.inp[0].in_features + 1
+    assert not torch.equal(net(batch["obs"], batch["action"], batch["reward"]),
+                           net(batch["obs"], batch["action"], batch["reward"] + 100.0))
+
+
+def test_vrama_reduction_mean_and_sum(monkeypatch):
+    """"mean" is Dreamer's γ^t-weighted mean over steps and starts; "sum" is Eq. 1's −Σ_t V_λ, mean over starts."""
+    returns = torch.tensor([[1.0, 2.0], [3.0, 4.0]])  # (H-1=2 steps, N=2 starts)
+    weights = torch.tensor([[1.0, 1.0], [0.5, 0.5]])
+    monkeypatch.setattr(rd, "imagined_returns", lambda *a: (returns, weights, None))
+    monkeypatch.setattr(rd, "imagine", lambda *a: None)
+    args = rd.Args(obs_type="state", **SMALL)
+    agent = rd.Agent((3,), 2, args)
+    rng = np.random.default_rng(0)
+    m = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(2, 5, rng), "cpu")
+    one_hot = torch.eye(2)
+    mean = rd.vrama_loss(agent, one_hot, m, 3, 0.99, 0.95, reduction="mean")
+    total = rd.vrama_loss(agent, one_hot, m, 3, 0.99, 0.95, reduction="sum")
+    assert mean.item() == pytest.approx(-(1 + 2 + 0.5 * 3 + 0.5 * 4) / 4)  # -1.625
+    assert total.item() == pytest.approx(-((1 + 3) + (2 + 4)) / 2)  # -5
+    assert rd.Args().vrama_reduction == "mean"
 
 
 def test_reward_mask_zeroes_masked_chunks():
