@@ -94,7 +94,8 @@ class Args:
     capture_video: bool = False
     """save GIFs of evaluation episodes and of open-loop world-model predictions under `videos/`"""
     benchmark: bool = False
-    """print seconds per update at the paper's size and a small size (CPU, and CUDA when present), then exit"""
+    """print seconds per update at the paper's size and a small size (on --device; auto = CPU, and CUDA when
+    present), then exit"""
     benchmark_updates: int = 3
     """timed updates per benchmark setting (after one warm-up update)"""
     benchmark_methods: Tuple[str, ...] = ("dreamer", "uniform", "rrama", "vrama", "rbrama")
@@ -1554,17 +1555,21 @@ def benchmark_collection(args: Args, device) -> None:
     env.close()
 
 
-def profile_update(args: Args, obs_shape, replay: Replay, multitask: Replay, rng) -> None:
-    """Where the time of one paper-size Dreamer update goes, operator by operator (CPU, after a warm-up update)."""
+def profile_update(args: Args, obs_shape, replay: Replay, multitask: Replay, rng, device) -> None:
+    """Where the time of one paper-size Dreamer update goes, operator by operator (after a warm-up update)."""
     from torch.profiler import ProfilerActivity, profile
 
     run_args = dataclasses.replace(args, batch_size=50, seq_len=50, method="dreamer")
-    agent, device = Agent(obs_shape, 6, run_args), torch.device("cpu")
+    agent = Agent(obs_shape, 6, run_args).to(device)
     batches = ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(2)
     update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 0)
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
+    cuda = device.type == "cuda"
+    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
         update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 1)
-    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20, max_name_column_width=40), flush=True)
+        if cuda:
+            torch.cuda.synchronize()
+    print(prof.key_averages().table(sort_by="self_cuda_time_total" if cuda else "self_cpu_time_total", row_limit=25,
+                                    max_name_column_width=40), flush=True)
 
 
 def benchmark(args: Args):
@@ -1573,7 +1578,7 @@ def benchmark(args: Args):
     unknown = set(args.benchmark_methods) - {"dreamer", "uniform", *ADDRESSED_METHODS}
     if unknown:
         raise UsageError(f"--benchmark-methods: unknown {sorted(unknown)}")
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
     print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
           f"{torch.__version__} | threads {torch.get_num_threads()}"
           + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "")
@@ -1585,7 +1590,7 @@ def benchmark(args: Args):
     for episode in replay.episodes:
         multitask.add(episode)
     if args.benchmark_profile:
-        return profile_update(args, obs_shape, replay, multitask, rng)
+        return profile_update(args, obs_shape, replay, multitask, rng, torch.device(devices[-1]))
     parts = ["world_model", "actor_critic", "addressing", "batch_sampling"]
     print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "
           + " ".join(f"{p:>14}" for p in parts), flush=True)
