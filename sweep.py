@@ -164,23 +164,17 @@ def command(run: Run, python: str = sys.executable) -> list:
             + (["--prior-dirs", *priors] if priors else []))
 
 
-if sys.platform == "linux":  # resolved here, not between fork and exec (where only async-signal-safe calls belong)
-    import ctypes
-
-    PRCTL = ctypes.CDLL(None).prctl
-
-
-def die_with_parent():
-    """In the child: be killed when the sweep's worker dies, so that a retried run never has two writers."""
-    if sys.platform == "linux":
-        PRCTL(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
 def run_cell(run: Run, threads: int, *_deps) -> dict:
     """Run (or resume) one run to its end, copy its results, write DONE. _deps: Ray's finished dependencies."""
     os.makedirs(run.folder, exist_ok=True)
     cmd = command(run)
     start = time.time()
+    die_with_parent = None  # the script is killed when this worker dies, so a retried run never has two writers
+    if sys.platform == "linux":
+        import ctypes
+
+        prctl = ctypes.CDLL(None).prctl  # looked up here: between fork and exec only the call itself happens
+        die_with_parent = lambda: prctl(1, signal.SIGKILL)  # noqa: E731  PR_SET_PDEATHSIG
     with open(os.path.join(run.folder, "log.txt"), "a") as log:
         log.write(f"$ {shlex.join(cmd)}\n")
         log.flush()
@@ -253,8 +247,8 @@ def run_ray(todo: list, address: str, retries: int) -> list:
     """Each run a Ray task; a dependency is passed as the object reference of its task. Returns the failure lines."""
     import ray
 
-    if address == "local":  # a private instance on this machine, sized to its cores
-        ray.init(include_dashboard=False, log_to_driver=False)
+    if address == "local":  # a new private instance on this machine (never an existing one), sized to its cores
+        ray.init(address="local", include_dashboard=False, log_to_driver=False)
     else:
         ray.init(address=address, log_to_driver=False)
     print(f"ray: {ray.cluster_resources()}", flush=True)
