@@ -166,9 +166,10 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
                 mean = np.nanmean(curves, 0)
                 se = np.where(n > 1, np.nanstd(curves, 0, ddof=1) / np.sqrt(np.maximum(n, 1)), 0.0)
             keep = n > 0  # bins where some run ended an episode: joined by the line
-            line, = ax.plot(centres[keep], mean[keep], label=f"{METHOD_NAMES.get(method, method)} ({len(curves)})",
-                            marker="." if keep.sum() < 20 else None)
-            ax.fill_between(centres[keep], (mean - se)[keep], (mean + se)[keep], color=line.get_color(), alpha=0.2)
+            colour = f"C{methods.index(method) % 10}"  # a method keeps its colour in every panel
+            ax.plot(centres[keep], mean[keep], color=colour, label=f"{METHOD_NAMES.get(method, method)} ({len(curves)})",
+                    marker="." if keep.sum() < 20 else None)
+            ax.fill_between(centres[keep], (mean - se)[keep], (mean + se)[keep], color=colour, alpha=0.2)
         ax.set_title(task, fontsize=9)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(key.split("/")[-1].replace("_", " "))
