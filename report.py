@@ -88,11 +88,18 @@ def iqm_ci(scores, reps: int, seed: int) -> tuple:
     from rliable import metrics
 
     matrix = np.asarray(scores, dtype=float)[:, None]  # (runs, tasks=1): rliable's layout
-    with warnings.catch_warnings():  # arch warns that rliable passes a RandomState; the result is the same
-        warnings.simplefilter("ignore", FutureWarning)
-        point, interval = rly.get_interval_estimates(
-            {"m": matrix}, lambda x: np.array([metrics.aggregate_iqm(x)]), reps=reps,
-            random_state=np.random.RandomState(seed))  # a fresh stream per cell: it does not depend on the others
+    # rliable 1.2.0 resamples with numpy's global generator (StratifiedBootstrap.update_indices calls
+    # np.random.choice) and ignores its random_state, so seed the global one, fresh per cell, and restore it after
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        with warnings.catch_warnings():  # arch warns that rliable passes random_state, which is deprecated there
+            warnings.simplefilter("ignore", FutureWarning)
+            point, interval = rly.get_interval_estimates(
+                {"m": matrix}, lambda x: np.array([metrics.aggregate_iqm(x)]), reps=reps,
+                random_state=np.random.RandomState(seed))
+    finally:
+        np.random.set_state(saved)
     return float(point["m"][0]), float(interval["m"][0, 0]), float(interval["m"][1, 0])
 
 

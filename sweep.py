@@ -46,7 +46,7 @@ ROOT = os.path.dirname(os.path.abspath(__file__))
 METHODS = ("dreamer", "uniform", "vrama", "rrama", "rbrama")  # the scripts' --method choices
 MANAGED = ("--run-dir", "--resume", "--seed", "--prior-dirs")  # the sweep sets these itself
 SPEC_KEYS = {"experiment", "script", "flags", "seeds", "cpus", "gpus", "cells"}
-CELL_KEYS = {"flags", "methods", "seeds", "prior", "prior_dirs", "method_flags"}
+CELL_KEYS = {"flags", "methods", "seeds", "prior", "prior_dirs", "method_flags", "cpus", "gpus"}
 
 
 class SpecError(Exception):
@@ -106,6 +106,8 @@ def load_spec(path: str, runs_dir: str = "runs", results_dir: str = "results"):
         if "__" in cell:
             raise SpecError(f"{where}: '__' separates a run name's parts; use another cell name")
         priors = [c["prior"]] if isinstance(c.get("prior"), str) else c.get("prior", [])
+        if cell in priors:
+            raise SpecError(f"{where}: prior {cell!r} is the cell itself; name one of its methods ({cell}/dreamer)")
         method_flags = c.get("method_flags", {})
         for method in c.get("methods", ["dreamer"]):
             extra = split_flags(method_flags.get(method, []))
@@ -151,8 +153,9 @@ def is_done(run: Run) -> bool:
     return os.path.exists(os.path.join(run.folder, "DONE"))
 
 
-def command(run: Run, python: str = sys.executable) -> list:
+def command(run: Run, python: str = None) -> list:
     """The script's command line: --resume the run folder if the run has started, else the spec's flags."""
+    python = python or sys.executable  # looked up when called: on Ray, the worker's interpreter
     started = run_folder(run.folder)
     if started:  # --resume reloads the saved flags; only --device comes from the command line
         device = last_value(run.flags, "--device")
@@ -162,6 +165,16 @@ def command(run: Run, python: str = sys.executable) -> list:
               for d in run.deps] + run.prior_dirs
     return ([python, run.script, *run.flags, "--run-dir", run.folder]
             + (["--prior-dirs", *priors] if priors else []))
+
+
+def save_results(run: Run):
+    """Copy args.json and every metrics.jsonl (one per task of a --task-sequence run) to the run's results folder."""
+    source = run_folder(run.folder)
+    for path in [os.path.join(source, "args.json")] + glob.glob(os.path.join(source, "**", "metrics.jsonl"),
+                                                                recursive=True):
+        target = os.path.join(run.results, os.path.relpath(path, source))
+        os.makedirs(os.path.dirname(target), exist_ok=True)
+        shutil.copyfile(path, target)
 
 
 def run_cell(run: Run, threads: int, *_deps) -> dict:
@@ -185,13 +198,7 @@ def run_cell(run: Run, threads: int, *_deps) -> dict:
             tail = f.read().strip().splitlines()[-1:] or [""]
         error = RunKilled if rc < 0 else RunFailed
         raise error(f"{run.name}: exit code {rc} ({tail[0][:200]}); log: {run.folder}/log.txt")
-    # the results: args.json and every metrics.jsonl (one per task of a --task-sequence run)
-    source = run_folder(run.folder)
-    for path in [os.path.join(source, "args.json")] + glob.glob(os.path.join(source, "**", "metrics.jsonl"),
-                                                                recursive=True):
-        target = os.path.join(run.results, os.path.relpath(path, source))
-        os.makedirs(os.path.dirname(target), exist_ok=True)
-        shutil.copyfile(path, target)
+    save_results(run)
     open(os.path.join(run.folder, "DONE"), "w").close()
     return {"name": run.name, "minutes": (time.time() - start) / 60, "resumed": "--resume" in cmd,
             "returns": episode_returns(os.path.join(run.results, "metrics.jsonl"))}
@@ -264,9 +271,11 @@ def run_ray(todo: list, address: str, retries: int) -> list:
         finished, pending = ray.wait(pending, num_returns=1)
         try:
             result = ray.get(finished[0])
-        except ray.exceptions.RayError as e:  # the run failed, or one it depends on did
+        except ray.exceptions.RayError as e:  # the run failed, or one it depends on did (then that run's error)
+            name = names[finished[0]]
             cause = e.cause if isinstance(e, ray.exceptions.RayTaskError) and e.cause else e
-            failures.append(f"{names[finished[0]]}: {str(cause).strip().splitlines()[-1][:300]}")
+            message = str(cause).strip().splitlines()[-1][:300]  # a RunFailed message starts with its run's name
+            failures.append(message if message.startswith(name + ":") else f"{name}: not started or lost ({message})")
             print(f"FAILED {failures[-1]}", flush=True)
             continue
         k += 1
@@ -294,12 +303,19 @@ def main():
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     todo = [r for r in runs if not is_done(r)]
+    for run in runs:  # results/ deleted or not yet committed here: copy them again from the done runs
+        if run not in todo and not os.path.exists(os.path.join(run.results, "args.json")) and not args.dry_run:
+            save_results(run)
+            print(f"{run.name}: results copied again to {run.results}")
     print(f"sweep {experiment}: {len(runs)} runs, {len(runs) - len(todo)} done already, {len(todo)} to run "
           f"(folders under {os.path.join(args.runs_dir, experiment)})", flush=True)
     if args.dry_run:
         for run in runs:
-            state = "done" if is_done(run) else "resume" if run_folder(run.folder) else "new"
-            print(f"{run.name} [{state}]" + ("" if state == "done" else f": {shlex.join(command(run, 'python'))}"))
+            try:
+                state = "done" if is_done(run) else "resume" if run_folder(run.folder) else "new"
+                print(f"{run.name} [{state}]" + ("" if state == "done" else f": {shlex.join(command(run, 'python'))}"))
+            except RunFailed as e:  # a folder that holds two runs
+                print(f"{run.name} [error]: {e}")
         return
     if not todo:
         return

@@ -2,6 +2,7 @@
 import json
 import os
 
+import numpy as np
 import pytest
 
 from helpers import run_script
@@ -53,6 +54,11 @@ def test_mean_se_and_iqm_by_hand():
     iqm, low, high = report.iqm_ci([1, 2, 3, 10], reps=500, seed=0)
     assert iqm == 2.5 and 1 <= low <= iqm <= high <= 10 and low < high
     assert report.iqm_ci([10, 3, 2, 1], reps=500, seed=0)[0] == 2.5
+    # seeded, whatever numpy's global generator holds (rliable draws from it), and that generator is left as it was
+    np.random.seed(123)
+    state = np.random.get_state()[1].copy()
+    assert report.iqm_ci([1, 2, 3, 10], reps=500, seed=0) == (iqm, low, high)
+    assert (np.random.get_state()[1] == state).all()
     # 3 runs: int(3 / 4) = 0 trimmed, so IQM = mean = (4 + 5 + 9) / 3 = 6
     assert report.iqm_ci([4, 5, 9], reps=500, seed=0)[0] == pytest.approx(6.0)
     # one run: no s.e.; every resample is that run, so the CI is a point

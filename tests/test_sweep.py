@@ -1,7 +1,10 @@
-"""sweep.py: spec expansion, a tiny grid run locally (a killed run resumed, a second call skipping) and on Ray."""
+"""sweep.py: spec expansion, and a tiny grid run locally and on a local Ray instance.
+
+Both runs of the grid resume a killed run, and a second call skips the done runs."""
 import glob
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -80,6 +83,7 @@ method_flags.rrama_nosg = "--method rrama --address-stop-grad-x False"
     ('[cells.a]\nmethods = ["rrama"]\nprior = "b"\n[cells.b]\n', r"prior 'b' names no run with seed 1"),
     ('[cells.a]\nmethods = ["rrama"]\nprior = "a/rrama"\n', r"prior 'a/rrama' names no run"),  # itself: a cycle
     ('[cells.a]\nflags = "--seed 3"\n', r"--seed is set by the sweep"),
+    ('[cells.a]\nmethods = ["dreamer", "rrama"]\nprior = "a"\n', r"is the cell itself"),
     ('[cells.a]\nmethods = ["mine"]\n', r"method 'mine' is not one of"),
     ('[cells.a__b]\n', r"'__' separates"),
 ])
@@ -125,6 +129,9 @@ def test_local_sweep_resumes_a_killed_run_then_skips_done_runs(tmp_path):
     again = sweep_cli(tmp_path, spec, "--workers", "2").stdout
     assert "2 runs, 2 done already, 0 to run" in again
     assert [open(os.path.join(r.folder, "log.txt")).read() for r in runs] == logs  # nothing ran again
+    shutil.rmtree(tmp_path / "results")  # results of done runs are copied again, still without running anything
+    assert "results copied again" in sweep_cli(tmp_path, spec).stdout
+    assert sorted(os.listdir(runs[0].results)) == ["args.json", "metrics.jsonl"]
 
 
 def test_dry_run_prints_commands_and_states(tmp_path):
@@ -135,14 +142,52 @@ def test_dry_run_prints_commands_and_states(tmp_path):
     assert not (tmp_path / "runs").exists()
 
 
-def test_ray_sweep_on_a_local_instance(tmp_path):
-    spec = write_spec(tmp_path, TINY_SPEC)
-    out = sweep_cli(tmp_path, spec, "--ray-address", "local").stdout
+def script_pid(folder: str):
+    """The pid of the training script that runs in a sweep folder (our own child's child, found by its --run-dir)."""
+    for path in glob.glob("/proc/[0-9]*/cmdline"):
+        try:
+            args = open(path, "rb").read().decode(errors="replace").split("\0")
+        except OSError:
+            continue
+        if any(a.endswith("rama_dreamer.py") for a in args) and folder in args:
+            return int(path.split("/")[2])
+    return None
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the script's pid in /proc")
+def test_ray_sweep_retries_a_killed_run_on_a_local_instance(tmp_path):
+    # 6 episodes instead of 3, so the run is still going when it is killed
+    spec = write_spec(tmp_path, TINY_SPEC.replace(
+        '"--eval-every"', '"--total-steps", "600", "--eval-every"'))
+    _, runs = sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / "results"))
+    prior = runs[0]
+    proc = subprocess.Popen([sys.executable, os.path.join(ROOT, "sweep.py"), spec, "--runs-dir", str(tmp_path / "runs"),
+                             "--results-dir", str(tmp_path / "results"), "--ray-address", "local"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:  # SIGKILL the Dreamer script (not its Ray worker) after its first episode: Ray retries, and it resumes
+        deadline = time.time() + 240
+        while not glob.glob(os.path.join(prior.folder, "*", "episodes", "*.npz")):
+            assert time.time() < deadline and proc.poll() is None, "the run wrote no episode in time"
+            time.sleep(0.05)
+        pid = script_pid(prior.folder)
+        assert pid, "the script ended before it could be killed"
+        os.kill(pid, signal.SIGKILL)
+        killed_at = len(glob.glob(os.path.join(prior.folder, "*", "episodes", "*.npz")))
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-3000:]
+    assert killed_at < 6
     assert "'CPU':" in out  # the cluster's resources line: Ray ran it
-    assert "[1/2] balance__dreamer__s1: finished in" in out and "[2/2] balance__uniform__s1: finished in" in out
+    assert "[1/2] balance__dreamer__s1: finished (resumed)" in out
+    assert "[2/2] balance__uniform__s1: finished in" in out
+    assert "--resume" in open(os.path.join(prior.folder, "log.txt")).read()
+    inner = glob.glob(os.path.join(prior.folder, "*", "episodes"))
+    assert len(inner) == 1 and len(os.listdir(inner[0])) == 6
     for name in ("balance__dreamer__s1", "balance__uniform__s1"):
         assert sorted(os.listdir(tmp_path / "results" / "tiny" / name)) == ["args.json", "metrics.jsonl"]
     with open(tmp_path / "results" / "tiny" / "balance__uniform__s1" / "args.json") as f:
-        prior_dirs = json.load(f)["prior_dirs"]
-    assert [os.path.dirname(p) for p in prior_dirs] == [str(tmp_path / "runs" / "tiny" / "balance__dreamer__s1")]
+        assert json.load(f)["prior_dirs"] == [os.path.dirname(inner[0])]
+    # a second call finds both done and starts no Ray instance
     assert "2 done already, 0 to run" in sweep_cli(tmp_path, spec, "--ray-address", "local").stdout
