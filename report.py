@@ -111,19 +111,20 @@ def fmt(x: float, decimals: int) -> str:
     return "–" if np.isnan(x) else f"{x:,.{decimals}f}"
 
 
-def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int):
+def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str):
     runs = load_experiment(folder, key)
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
     experiment = os.path.basename(os.path.normpath(folder))
     tasks = sorted({r["task"] for r in runs})
     methods = method_order({r["method"] for r in runs})
+    note = " (the paper's metric)" if key == "charts/episodic_return" else ""
     header = ["method"] + [f"{t}: {h}" for t in tasks for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]
     lines = [f"# {experiment}", "",
-             f"Per run: the average of `{key}` over the whole run (the paper's metric). Per task and method: the mean "
+             f"Per run: the average of `{key}` over the whole run{note}. Per task and method: the mean "
              f"± standard error over seeds, and the interquartile mean with a 95% stratified-bootstrap confidence "
              f"interval (rliable, {reps} resamples, seed {seed}). With fewer than 4 seeds the IQM equals the mean.",
-             f"Made by `python report.py {folder}` from the results alone.", "",
+             f"Made by `python report.py {folder}{options}` from the results alone.", "",
              "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     for method in methods:
         row = [METHOD_NAMES.get(method, f"`{method}`")]
@@ -230,6 +231,9 @@ def main():
         return plot_runs(args.runs, args.out or "curve.png", args.title)
     if not args.folders:
         parser.error("give experiment folders (results/<experiment>) or --runs")
+    # the options that change the report, for its "Made by" line
+    options = "".join(f" --{name} {getattr(args, name)}" for name in ("key", "reps", "seed", "bins", "decimals")
+                      if getattr(args, name) != parser.get_default(name))
     for folder in args.folders:
         if not os.path.isdir(folder):
             sys.exit(f"error: {folder}: no such folder")
@@ -241,7 +245,7 @@ def main():
         for experiment in experiments:
             out = args.out if args.out and len(experiments) == 1 else \
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
-            write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals)
+            write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals, options)
 
 
 if __name__ == "__main__":
