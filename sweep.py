@@ -110,6 +110,8 @@ def load_spec(path: str, runs_dir: str = "runs", results_dir: str = "results"):
             raise SpecError(f"{where}: prior {cell!r} is the cell itself; name one of its methods ({cell}/dreamer)")
         method_flags = c.get("method_flags", {})
         for method in c.get("methods", ["dreamer"]):
+            if "__" in method:
+                raise SpecError(f"{where}: method {method!r}: '__' separates a run name's parts; use another name")
             extra = split_flags(method_flags.get(method, []))
             if method not in METHODS and "--method" not in extra:
                 raise SpecError(f"{where}: method {method!r} is not one of {METHODS}; for a variant, give its "
