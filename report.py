@@ -1,0 +1,252 @@
+"""Tables and learning curves from results/: the paper's metric per task and method, by one command.
+
+    python report.py results/same_task_cartpole            # -> results/same_task_cartpole/report.md and curves.png
+    python report.py results                               # every experiment under results/
+    python report.py results/same_task_cartpole --out docs # write them to docs/ instead
+    python report.py --runs runs/<run> [runs/<run> ...] --out docs/curve.png   # the training and evaluation
+                                                           # returns of single runs, in one figure
+
+An experiment folder holds one folder per run, named <cell>__<method>__s<seed> as sweep.py writes them, each with
+args.json and metrics.jsonl. A folder named otherwise is grouped by its args.json (env id, method, seed). A
+--task-sequence run has one metrics.jsonl per task in <k>_<task>/, and each task is its own column, <cell>/<k>_<task>.
+
+The number per run is the paper's: the average training-episode return over the whole run (the mean of
+`charts/episodic_return`; --key picks another key). Per task and method the table gives:
+- the mean ± standard error over seeds, as the paper does (s.e. = sample standard deviation, ddof 1, / sqrt(n));
+- the interquartile mean (IQM) with a 95% stratified-bootstrap confidence interval (rliable), because 2-3 seeds
+  with mean ± s.e. alone mislead. The IQM drops int(n/4) runs at each end, so with fewer than 4 seeds it equals
+  the mean. The bootstrap is seeded, so the report is the same on every run of this command.
+The curves show, per task, one line per method. Each run's returns are averaged in --bins equal bins of
+environment steps; the line is the mean over seeds of those bin averages, and the band is ± one s.e.
+"""
+import argparse
+import glob
+import json
+import os
+import re
+import sys
+import warnings
+
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+METHOD_NAMES = {"dreamer": "Dreamer", "uniform": "No addressing (uniform)", "rrama": "RRAMa", "rbrama": "RbRAMa",
+                "vrama": "VRAMa"}  # the paper's row names, in its order
+
+
+def read_series(metrics_path: str, key: str):
+    """(steps, values) of one key. A resumed run can log a step twice: the last line of a step wins."""
+    by_step = {}
+    with open(metrics_path) as f:
+        for line in f:
+            row = json.loads(line)
+            if key in row:
+                by_step[row["step"]] = row[key]
+    steps = sorted(by_step)
+    return np.array(steps, dtype=float), np.array([by_step[s] for s in steps], dtype=float)
+
+
+def load_experiment(folder: str, key: str) -> list:
+    """One dict per (run, task) of an experiment folder: task, method, seed, run name, steps and values of `key`."""
+    runs = []
+    for run_path in sorted(glob.glob(os.path.join(folder, "*", "args.json"))):
+        run_path = os.path.dirname(run_path)
+        name = os.path.basename(run_path)
+        with open(os.path.join(run_path, "args.json")) as f:
+            saved = json.load(f)
+        parts = re.fullmatch(r"(.+)__(.+)__s(\d+)", name)
+        if parts:
+            cell, method, seed = parts[1], parts[2], int(parts[3])
+        else:
+            cell, method, seed = saved.get("task_sequence") or saved["env_id"], saved["method"], saved["seed"]
+        tasks = [(cell, os.path.join(run_path, "metrics.jsonl"))]
+        if not os.path.exists(tasks[0][1]):  # a --task-sequence run: one metrics.jsonl per task
+            tasks = [(f"{cell}/{os.path.basename(os.path.dirname(p))}", p)
+                     for p in sorted(glob.glob(os.path.join(run_path, "*", "metrics.jsonl")))]
+        for task, metrics_path in tasks:
+            steps, values = read_series(metrics_path, key)
+            if len(values) == 0:
+                print(f"warning: {metrics_path}: no {key}, left out", file=sys.stderr)
+                continue
+            runs.append({"task": task, "method": method, "seed": seed, "name": name, "steps": steps, "values": values})
+    return runs
+
+
+def mean_se(scores) -> tuple:
+    """Mean and standard error (sample std with ddof 1, over sqrt(n)); the s.e. of one score is nan."""
+    scores = np.asarray(scores, dtype=float)
+    se = scores.std(ddof=1) / np.sqrt(len(scores)) if len(scores) > 1 else float("nan")
+    return float(scores.mean()), float(se)
+
+
+def iqm_ci(scores, reps: int, seed: int) -> tuple:
+    """IQM and its 95% stratified-bootstrap CI (rliable) over runs of one task: (iqm, low, high)."""
+    from rliable import library as rly  # imported here: it pulls in arch, statsmodels and pandas (seconds)
+    from rliable import metrics
+
+    matrix = np.asarray(scores, dtype=float)[:, None]  # (runs, tasks=1): rliable's layout
+    # rliable 1.2.0 resamples with numpy's global generator (StratifiedBootstrap.update_indices calls
+    # np.random.choice) and ignores its random_state, so seed the global one, fresh per cell, and restore it after
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        with warnings.catch_warnings():  # arch warns that rliable passes random_state, which is deprecated there
+            warnings.simplefilter("ignore", FutureWarning)
+            point, interval = rly.get_interval_estimates(
+                {"m": matrix}, lambda x: np.array([metrics.aggregate_iqm(x)]), reps=reps,
+                random_state=np.random.RandomState(seed))
+    finally:
+        np.random.set_state(saved)
+    return float(point["m"][0]), float(interval["m"][0, 0]), float(interval["m"][1, 0])
+
+
+def method_order(methods) -> list:
+    return [m for m in METHOD_NAMES if m in methods] + sorted(m for m in methods if m not in METHOD_NAMES)
+
+
+def fmt(x: float, decimals: int) -> str:
+    return "–" if np.isnan(x) else f"{x:,.{decimals}f}"
+
+
+def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str):
+    runs = load_experiment(folder, key)
+    if not runs:
+        sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
+    experiment = os.path.basename(os.path.normpath(folder))
+    tasks = sorted({r["task"] for r in runs})
+    methods = method_order({r["method"] for r in runs})
+    note = " (the paper's metric)" if key == "charts/episodic_return" else ""
+    header = ["method"] + [f"{t}: {h}" for t in tasks for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]
+    lines = [f"# {experiment}", "",
+             f"Per run: the average of `{key}` over the whole run{note}. Per task and method: the mean "
+             f"± standard error over seeds, and the interquartile mean with a 95% stratified-bootstrap confidence "
+             f"interval (rliable, {reps} resamples, seed {seed}). With fewer than 4 seeds the IQM equals the mean.",
+             f"Made by `python report.py {folder}{options}` from the results alone.", "",
+             "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    for method in methods:
+        row = [METHOD_NAMES.get(method, f"`{method}`")]
+        for task in tasks:
+            scores = [r["values"].mean() for r in runs if r["task"] == task and r["method"] == method]
+            if not scores:
+                row += ["–", "–"]
+                continue
+            mean, se = mean_se(scores)
+            iqm, low, high = iqm_ci(scores, reps, seed)
+            row += [f"{fmt(mean, decimals)} ± {fmt(se, decimals)} ({len(scores)})",
+                    f"{fmt(iqm, decimals)} [{fmt(low, decimals)}, {fmt(high, decimals)}]"]
+        lines.append("| " + " | ".join(row) + " |")
+    figure = "curves.png"
+    lines += ["", f"![learning curves]({figure})", "", "## Runs", "",
+              "| run | task | episodes | last env step | average return |", "| --- | --- | --- | --- | --- |"]
+    lines += [f"| {r['name']} | {r['task']} | {len(r['values'])} | {int(r['steps'][-1]):,} | "
+              f"{fmt(r['values'].mean(), decimals)} |" for r in runs]
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "report.md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    plot_curves(runs, tasks, methods, key, bins, f"{experiment}: {key} (mean ± s.e. over seeds)",
+                os.path.join(out, figure))
+    print(f"wrote {os.path.join(out, 'report.md')} and {os.path.join(out, figure)}")
+
+
+def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, title: str, path: str):
+    """One panel per task; per method, the mean over seeds of each run's bin averages, with a ± s.e. band."""
+    cols = min(3, len(tasks))
+    rows = (len(tasks) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.5 * rows), squeeze=False)
+    for ax, task in zip(axes.flat, tasks):
+        edges = np.linspace(0, max(r["steps"].max() for r in runs if r["task"] == task), bins + 1)
+        centres = (edges[:-1] + edges[1:]) / 2
+        for method in methods:
+            curves = []  # (runs, bins): each run's mean return per bin, nan where it has no episode
+            for r in (r for r in runs if r["task"] == task and r["method"] == method):
+                which = np.clip(np.searchsorted(edges, r["steps"], side="left") - 1, 0, bins - 1)
+                sums, counts = np.bincount(which, r["values"], bins), np.bincount(which, minlength=bins)
+                curves.append(np.where(counts > 0, sums / np.maximum(counts, 1), np.nan))
+            if not curves:
+                continue
+            curves = np.array(curves)
+            n = (~np.isnan(curves)).sum(0)
+            with warnings.catch_warnings():  # bins with no run are nan and are not drawn
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean = np.nanmean(curves, 0)
+                se = np.where(n > 1, np.nanstd(curves, 0, ddof=1) / np.sqrt(np.maximum(n, 1)), 0.0)
+            keep = n > 0  # bins where some run ended an episode: joined by the line
+            colour = f"C{methods.index(method) % 10}"  # a method keeps its colour in every panel
+            ax.plot(centres[keep], mean[keep], color=colour, label=f"{METHOD_NAMES.get(method, method)} ({len(curves)})",
+                    marker="." if keep.sum() < 20 else None)
+            ax.fill_between(centres[keep], (mean - se)[keep], (mean + se)[keep], color=colour, alpha=0.2)
+        ax.set_title(task, fontsize=9)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(key.split("/")[-1].replace("_", " "))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in axes.flat[len(tasks):]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_runs(run_paths: list, out: str, title):
+    """Single runs' training and evaluation returns against environment steps, in one figure."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for run_path in run_paths:
+        metrics_path = os.path.join(run_path, "metrics.jsonl")
+        if not os.path.isfile(metrics_path):
+            sys.exit(f"error: {run_path}: no metrics.jsonl (not a run folder)")
+        label = os.path.basename(os.path.normpath(run_path))
+        for key, style in (("charts/episodic_return", dict(alpha=0.5, lw=1)), ("eval/episodic_return", dict(marker="o"))):
+            steps, values = read_series(metrics_path, key)
+            if len(steps):
+                ax.plot(steps, values, label=f"{key.split('/')[0]} — {label}"[:70], **style)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("episode return")
+    ax.set_title(title or os.path.basename(os.path.normpath(run_paths[0]))[:80], fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    print(f"wrote {out}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folders", nargs="*", help="experiment folders (results/<experiment>), or results/ itself")
+    parser.add_argument("--out", default=None, help="where to write (default: each experiment's folder); "
+                        "with --runs, the PNG to write (default curve.png)")
+    parser.add_argument("--runs", nargs="+", default=None, help="instead: draw these run folders' curves in one PNG")
+    parser.add_argument("--title", default=None, help="--runs: the figure's title (default: the first run's name)")
+    parser.add_argument("--key", default="charts/episodic_return", help="the metric (e.g. eval/episodic_return, "
+                        "charts/success_rate)")
+    parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples per task and method")
+    parser.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
+    parser.add_argument("--bins", type=int, default=50, help="curves: bins of environment steps")
+    parser.add_argument("--decimals", type=int, default=1, help="decimals in the tables")
+    args = parser.parse_args()
+    if args.runs:
+        return plot_runs(args.runs, args.out or "curve.png", args.title)
+    if not args.folders:
+        parser.error("give experiment folders (results/<experiment>) or --runs")
+    # the options that change the report, for its "Made by" line
+    options = "".join(f" --{name} {getattr(args, name)}" for name in ("key", "reps", "seed", "bins", "decimals")
+                      if getattr(args, name) != parser.get_default(name))
+    for folder in args.folders:
+        if not os.path.isdir(folder):
+            sys.exit(f"error: {folder}: no such folder")
+        # results/ itself holds experiments (folders of run folders) rather than run folders
+        experiments = [folder] if glob.glob(os.path.join(folder, "*", "args.json")) else \
+            sorted({os.path.dirname(os.path.dirname(p)) for p in glob.glob(os.path.join(folder, "*", "*", "args.json"))})
+        if not experiments:
+            sys.exit(f"error: {folder}: holds no run folders (<run>/args.json) and no experiments")
+        for experiment in experiments:
+            out = args.out if args.out and len(experiments) == 1 else \
+                os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
+            write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals, options)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""report.py: hand-checked table numbers from a synthetic results folder, curves, and single-run curves."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from helpers import run_script
+import report
+
+
+def write_run(folder, name, returns, args=None, sub=None):
+    """A results run folder: args.json and a metrics.jsonl with one training episode per 100 steps (+ other lines)."""
+    run = folder / name
+    (run / (sub or "")).mkdir(parents=True, exist_ok=True)
+    (run / "args.json").write_text(json.dumps(args or {"env_id": "dmc/x", "method": "dreamer", "seed": 1}))
+    rows = []
+    for i, value in enumerate(returns):
+        rows += [{"step": 100 * (i + 1), "charts/episodic_return": value}, {"step": 100 * (i + 1), "losses/kl": 1.0}]
+    (run / (sub or "") / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return run
+
+
+@pytest.fixture
+def results(tmp_path):
+    exp = tmp_path / "results" / "exp"
+    # task walk, dreamer: run averages 1, 2, 3, 10
+    write_run(exp, "walk__dreamer__s1", [0.0, 2.0])  # (0 + 2) / 2 = 1
+    run = write_run(exp, "walk__dreamer__s2", [7.0, 2.0])
+    with open(run / "metrics.jsonl", "a") as f:  # a resumed run logged step 100 again: the last line counts
+        f.write(json.dumps({"step": 100, "charts/episodic_return": 2.0}) + "\n")  # -> (2 + 2) / 2 = 2
+    write_run(exp, "walk__dreamer__s3", [3.0, 3.0, 3.0])  # 3
+    write_run(exp, "walk__dreamer__s4", [10.0])  # 10
+    # task walk, rrama: run averages 4, 5, 9
+    write_run(exp, "walk__rrama__s1", [4.0])
+    write_run(exp, "walk__rrama__s2", [5.0])
+    write_run(exp, "walk__rrama__s3", [8.0, 10.0])  # 9
+    # task run: one Dreamer seed (7), no rrama
+    write_run(exp, "run__dreamer__s1", [7.0])
+    # a folder not named by sweep.py is grouped by its args.json: task dmc/hop, method vrama
+    write_run(exp, "dmc_hop__x__vrama__1__123", [6.0], {"env_id": "dmc/hop", "method": "vrama", "seed": 1})
+    # a --task-sequence run: one column per task
+    write_run(exp, "seq__rrama__s1", [1.0, 3.0], sub="0_walker-stand")  # 2
+    write_run(exp, "seq__rrama__s1", [5.0], sub="1_walker-walk")
+    return exp
+
+
+def test_mean_se_and_iqm_by_hand():
+    # [1, 2, 3, 10]: mean 16 / 4 = 4; deviations -3 -2 -1 6, squares sum 50, sample var 50 / 3,
+    # s.e. = sqrt(50 / 3) / sqrt(4) = 4.0825 / 2 = 2.0412
+    mean, se = report.mean_se([1, 2, 3, 10])
+    assert mean == 4.0 and se == pytest.approx(2.041241, abs=1e-6)
+    # IQM: int(4 / 4) = 1 run trimmed at each end -> mean(2, 3) = 2.5; every resample's IQM lies in [1, 10]
+    iqm, low, high = report.iqm_ci([1, 2, 3, 10], reps=500, seed=0)
+    assert iqm == 2.5 and 1 <= low <= iqm <= high <= 10 and low < high
+    assert report.iqm_ci([10, 3, 2, 1], reps=500, seed=0)[0] == 2.5
+    # seeded, whatever numpy's global generator holds (rliable draws from it), and that generator is left as it was
+    np.random.seed(123)
+    state = np.random.get_state()[1].copy()
+    assert report.iqm_ci([1, 2, 3, 10], reps=500, seed=0) == (iqm, low, high)
+    assert (np.random.get_state()[1] == state).all()
+    # 3 runs: int(3 / 4) = 0 trimmed, so IQM = mean = (4 + 5 + 9) / 3 = 6
+    assert report.iqm_ci([4, 5, 9], reps=500, seed=0)[0] == pytest.approx(6.0)
+    # one run: no s.e.; every resample is that run, so the CI is a point
+    assert report.iqm_ci([7.0], reps=100, seed=0) == (7.0, 7.0, 7.0)
+    assert report.mean_se([7.0])[0] == 7.0 and report.mean_se([7.0])[1] != report.mean_se([7.0])[1]  # nan
+
+
+def test_report_tables_by_hand(results):
+    run_script("report.py", str(results.parent), "--reps", "500", "--decimals", "3")  # results/ holds experiments
+    text = (results / "report.md").read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| method"))
+    columns = [c.strip() for c in header.strip("|").split("|")]
+    assert columns == ["method"] + [f"{t}: {h}" for t in ("dmc/hop", "run", "seq/0_walker-stand", "seq/1_walker-walk",
+                                                            "walk") for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")[1:]]
+            for line in text.splitlines() if line.startswith("| ") and not line.startswith("| method")}
+    dreamer, rrama, vrama = rows["Dreamer"], rows["RRAMa"], rows["VRAMa"]
+    assert dreamer[8] == "4.000 ± 2.041 (4)" and dreamer[9].startswith("2.500 [")  # walk, as computed above
+    assert rrama[8] == "6.000 ± 1.528 (3)" and rrama[9].startswith("6.000 [")  # s.e. = sqrt(14 / 2) / sqrt(3)
+    assert dreamer[2:4] == ["7.000 ± – (1)", "7.000 [7.000, 7.000]"]  # run: one seed
+    assert rrama[2:4] == ["–", "–"]  # run: no rrama
+    assert rrama[4] == "2.000 ± – (1)" and rrama[6] == "5.000 ± – (1)"  # the task sequence's two tasks
+    assert vrama[0] == "6.000 ± – (1)"
+    assert "| walk__dreamer__s2 | walk | 2 | 200 | 2.000 |" in text  # the runs table (the resumed step counted once)
+    assert (results / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the bootstrap is seeded: the same command writes the same report
+    run_script("report.py", str(results), "--reps", "500", "--decimals", "3")
+    assert (results / "report.md").read_text() == text
+
+
+def test_report_out_folder_and_errors(results, tmp_path):
+    run_script("report.py", str(results), "--out", str(tmp_path / "docs"), "--reps", "100")
+    assert sorted(os.listdir(tmp_path / "docs")) == ["curves.png", "report.md"]
+    proc = run_script("report.py", str(tmp_path / "nothing"), check=False)
+    assert proc.returncode != 0 and "no such folder" in proc.stderr
+
+
+def test_runs_curves_write_a_png(tmp_path):  # what plot_curves.py did
+    run = write_run(tmp_path, "run", [1.0, 2.0, 3.0, 4.0])
+    with open(run / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({"step": 400, "eval/episodic_return": 3.5}) + "\n")
+    out = tmp_path / "curve.png"
+    run_script("report.py", "--runs", str(run), "--out", str(out))
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_runs_curves_name_a_bad_folder(tmp_path):
+    proc = run_script("report.py", "--runs", str(tmp_path), check=False)
+    assert proc.returncode != 0 and str(tmp_path) in proc.stderr and len(proc.stderr.strip().splitlines()) == 1

@@ -1,0 +1,193 @@
+"""sweep.py: spec expansion, and a tiny grid run locally and on a local Ray instance.
+
+Both runs of the grid resume a killed run, and a second call skips the done runs."""
+import glob
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from helpers import ROOT, TINY, run_script
+import sweep
+
+# a tiny grid: Dreamer, then `uniform` with the Dreamer run of the same seed as its prior
+TINY_SPEC = f"""
+experiment = "tiny"
+flags = {json.dumps(["--env-id", "dmc/cartpole-balance", "--obs-type", "state", *TINY])}
+seeds = [1]
+
+[cells.balance]
+methods = ["dreamer", "uniform"]
+prior = "balance/dreamer"
+"""
+
+
+def write_spec(tmp_path, text: str) -> str:
+    path = tmp_path / "spec.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def sweep_cli(tmp_path, spec, *flags, timeout=300):
+    return run_script("sweep.py", spec, "--runs-dir", str(tmp_path / "runs"), "--results-dir",
+                      str(tmp_path / "results"), *flags, timeout=timeout)
+
+
+def test_spec_expands_cells_methods_seeds_and_priors(tmp_path):
+    spec = write_spec(tmp_path, """
+experiment = "exp"
+flags = "--obs-type state --total-steps 1000"
+seeds = [1, 2]
+[cells.stand]
+flags = ["--env-id", "dmc/walker-stand"]
+methods = ["dreamer"]
+[cells.walk]
+flags = "--env-id dmc/walker-walk --prior-min-return 600"
+methods = ["dreamer", "rrama", "rrama_nosg"]
+seeds = [2]
+prior = "stand"
+method_flags.rrama_nosg = "--method rrama --address-stop-grad-x False"
+""")
+    experiment, runs = sweep.load_spec(spec, "R", "S")
+    by_name = {r.name: r for r in runs}
+    assert experiment == "exp"
+    assert list(by_name) == ["stand__dreamer__s1", "stand__dreamer__s2", "walk__dreamer__s2", "walk__rrama__s2",
+                             "walk__rrama_nosg__s2"]
+    nosg = by_name["walk__rrama_nosg__s2"]
+    assert nosg.folder == os.path.join("R", "exp", "walk__rrama_nosg__s2")
+    assert nosg.results == os.path.join("S", "exp", "walk__rrama_nosg__s2")
+    assert nosg.deps == ["stand__dreamer__s2"]  # the prior run of the same seed only
+    assert nosg.flags == ["--exp-name", "walk", "--obs-type", "state", "--total-steps", "1000", "--env-id",
+                          "dmc/walker-walk", "--prior-min-return", "600", "--method", "rrama",
+                          "--address-stop-grad-x", "False", "--seed", "2"]
+    assert by_name["walk__dreamer__s2"].deps == []  # Dreamer takes no prior data, so it waits for nothing
+    # the command: --prior-dirs names the prior's folder; a started run is resumed, keeping --device
+    assert sweep.command(nosg, "python")[-2:] == ["--prior-dirs", os.path.join("R", "exp", "stand__dreamer__s2")]
+    run = by_name["stand__dreamer__s1"]
+    run.folder = str(tmp_path / "started")
+    run.flags += ["--device", "cpu"]
+    os.makedirs(tmp_path / "started" / "dmc_walker-stand__x__dreamer__1__123")
+    (tmp_path / "started" / "dmc_walker-stand__x__dreamer__1__123" / "args.json").write_text("{}")
+    assert sweep.command(run, "python") == ["python", run.script, "--resume",
+                                            str(tmp_path / "started" / "dmc_walker-stand__x__dreamer__1__123"),
+                                            "--device", "cpu"]
+
+
+@pytest.mark.parametrize("text, message", [
+    ('bad_key = 1\n[cells.a]\n', r"unknown keys \['bad_key'\]"),
+    ('[cells.a]\nmethods = ["rrama"]\nprior = "b"\n[cells.b]\n', r"prior 'b' names no run with seed 1"),
+    ('[cells.a]\nmethods = ["rrama"]\nprior = "a/rrama"\n', r"prior 'a/rrama' names no run"),  # itself: a cycle
+    ('[cells.a]\nflags = "--seed 3"\n', r"--seed is set by the sweep"),
+    ('[cells.a]\nmethods = ["dreamer", "rrama"]\nprior = "a"\n', r"is the cell itself"),
+    ('[cells.a]\nmethods = ["mine"]\n', r"method 'mine' is not one of"),
+    ('[cells.a__b]\n', r"'__' separates"),
+])
+def test_spec_errors_name_the_problem(tmp_path, text, message):
+    with pytest.raises(sweep.SpecError, match=message):
+        sweep.load_spec(write_spec(tmp_path, text))
+
+
+def test_local_sweep_resumes_a_killed_run_then_skips_done_runs(tmp_path):
+    spec = write_spec(tmp_path, TINY_SPEC)
+    _, runs = sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / "results"))
+    prior = runs[0]
+    # a killed run: the Dreamer run started by hand with the sweep's own command, SIGKILLed after its first episode
+    proc = subprocess.Popen(sweep.command(prior), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 240
+        while not glob.glob(os.path.join(prior.folder, "*", "episodes", "*.npz")):
+            assert time.time() < deadline and proc.poll() is None, "the run wrote no episode in time"
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    killed_at = len(glob.glob(os.path.join(prior.folder, "*", "episodes", "*.npz")))
+    assert killed_at < 3  # 3 episodes make a TINY run
+
+    out = sweep_cli(tmp_path, spec, "--workers", "2").stdout
+    assert "2 runs, 0 done already, 2 to run" in out
+    assert "[1/2] balance__dreamer__s1: finished (resumed)" in out  # the uniform run waited for its prior
+    assert "[2/2] balance__uniform__s1: finished in" in out
+    inner = glob.glob(os.path.join(prior.folder, "*", "args.json"))
+    assert len(inner) == 1  # resumed in place, not started again beside the killed run
+    dreamer_run = os.path.dirname(inner[0])
+    assert len(glob.glob(os.path.join(dreamer_run, "episodes", "*.npz"))) == 3
+    assert "--resume" in open(os.path.join(prior.folder, "log.txt")).read()
+    # results: args.json and metrics.jsonl of each run; the uniform run's prior is the Dreamer run of its seed
+    for run in runs:
+        assert sorted(os.listdir(run.results)) == ["args.json", "metrics.jsonl"]
+        assert os.path.exists(os.path.join(run.folder, "DONE"))
+    with open(os.path.join(runs[1].results, "args.json")) as f:
+        assert json.load(f)["prior_dirs"] == [dreamer_run]
+
+    logs = [open(os.path.join(r.folder, "log.txt")).read() for r in runs]
+    again = sweep_cli(tmp_path, spec, "--workers", "2").stdout
+    assert "2 runs, 2 done already, 0 to run" in again
+    assert [open(os.path.join(r.folder, "log.txt")).read() for r in runs] == logs  # nothing ran again
+    shutil.rmtree(tmp_path / "results")  # results of done runs are copied again, still without running anything
+    assert "results copied again" in sweep_cli(tmp_path, spec).stdout
+    assert sorted(os.listdir(runs[0].results)) == ["args.json", "metrics.jsonl"]
+
+
+def test_dry_run_prints_commands_and_states(tmp_path):
+    spec = write_spec(tmp_path, TINY_SPEC)
+    out = sweep_cli(tmp_path, spec, "--dry-run").stdout
+    assert "balance__dreamer__s1 [new]: python " in out and "--method dreamer --seed 1 --run-dir" in out
+    assert out.rstrip().endswith(f"--prior-dirs {tmp_path / 'runs' / 'tiny' / 'balance__dreamer__s1'}")
+    assert not (tmp_path / "runs").exists()
+
+
+def script_pid(folder: str):
+    """The pid of the training script that runs in a sweep folder (our own child's child, found by its --run-dir)."""
+    for path in glob.glob("/proc/[0-9]*/cmdline"):
+        try:
+            args = open(path, "rb").read().decode(errors="replace").split("\0")
+        except OSError:
+            continue
+        if any(a.endswith("rama_dreamer.py") for a in args) and folder in args:
+            return int(path.split("/")[2])
+    return None
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the script's pid in /proc")
+def test_ray_sweep_retries_a_killed_run_on_a_local_instance(tmp_path):
+    # 6 episodes instead of 3, so the run is still going when it is killed
+    spec = write_spec(tmp_path, TINY_SPEC.replace(
+        '"--eval-every"', '"--total-steps", "600", "--eval-every"'))
+    _, runs = sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / "results"))
+    prior = runs[0]
+    proc = subprocess.Popen([sys.executable, os.path.join(ROOT, "sweep.py"), spec, "--runs-dir", str(tmp_path / "runs"),
+                             "--results-dir", str(tmp_path / "results"), "--ray-address", "local"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:  # SIGKILL the Dreamer script (not its Ray worker) after its first episode: Ray retries, and it resumes
+        deadline = time.time() + 240
+        while not glob.glob(os.path.join(prior.folder, "*", "episodes", "*.npz")):
+            assert time.time() < deadline and proc.poll() is None, "the run wrote no episode in time"
+            time.sleep(0.05)
+        pid = script_pid(prior.folder)
+        assert pid, "the script ended before it could be killed"
+        os.kill(pid, signal.SIGKILL)
+        killed_at = len(glob.glob(os.path.join(prior.folder, "*", "episodes", "*.npz")))
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-3000:]
+    assert killed_at < 6
+    assert "'CPU':" in out  # the cluster's resources line: Ray ran it
+    assert "[1/2] balance__dreamer__s1: finished (resumed)" in out
+    assert "[2/2] balance__uniform__s1: finished in" in out
+    assert "--resume" in open(os.path.join(prior.folder, "log.txt")).read()
+    inner = glob.glob(os.path.join(prior.folder, "*", "episodes"))
+    assert len(inner) == 1 and len(os.listdir(inner[0])) == 6
+    for name in ("balance__dreamer__s1", "balance__uniform__s1"):
+        assert sorted(os.listdir(tmp_path / "results" / "tiny" / name)) == ["args.json", "metrics.jsonl"]
+    with open(tmp_path / "results" / "tiny" / "balance__uniform__s1" / "args.json") as f:
+        assert json.load(f)["prior_dirs"] == [os.path.dirname(inner[0])]
+    # a second call finds both done and starts no Ray instance
+    assert "2 done already, 0 to run" in sweep_cli(tmp_path, spec, "--ray-address", "local").stdout
