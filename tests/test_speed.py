@@ -175,9 +175,37 @@ def test_parallel_envs_play_the_sequential_episodes():
 
 
 def test_script_with_fast_paths_runs(tmp_path):
-    """bf16, prefetch and two collecting subprocesses together, end to end (pixels, tiny sizes)."""
+    """bf16 where this CPU has it natively (else refused, see below), prefetch and two collecting subprocesses
+    together, end to end (pixels, tiny sizes)."""
+    precision = "bf16" if rd.native_bf16(torch.device("cpu"))[0] else "fp32"
     proc = run_script("rama_dreamer.py", "--env-id", "dmc/walker-walk", *TINY, "--run-dir", str(tmp_path),
-                      "--precision", "bf16", "--num-envs", "2", "--total-steps", "400")
+                      "--precision", precision, "--num-envs", "2", "--total-steps", "400")
     assert "episode 4" in proc.stdout
     (run,) = tmp_path.iterdir()
     assert len(list((run / "episodes").glob("*.npz"))) == 4
+
+
+@pytest.mark.parametrize("flags, native", [(["fpu", "avx2"], False), (["avx2", "avx512_bf16"], True),
+                                           (["amx_bf16"], True)])
+def test_bf16_is_refused_without_native_support(monkeypatch, flags, native):
+    """A CPU without AVX-512 BF16 or AMX emulates bf16 (13x slower than fp32): --precision bf16 is refused with one
+    line naming the flag and suggesting fp32, before anything runs. fp32 is never refused."""
+    monkeypatch.setattr(rd, "cpu_flags", lambda: flags)
+    cpu = torch.device("cpu")
+    assert rd.native_bf16(cpu)[0] == native
+    rd.check_precision("fp32", cpu)
+    if native:
+        rd.check_precision("bf16", cpu)
+    else:
+        with pytest.raises(rd.UsageError, match=r"--precision bf16: CPU .*no avx512_bf16.*use --precision fp32"):
+            rd.check_precision("bf16", cpu)
+
+
+def test_bf16_refusal_is_one_line_on_this_machine(tmp_path):
+    """The same check in a real run: on a CPU without native bf16, exit 2, one line, no run folder."""
+    if rd.native_bf16(torch.device("cpu"))[0]:
+        pytest.skip("this CPU has native bf16")
+    proc = run_script("rama_dreamer.py", "--env-id", "dmc/cartpole-balance", "--obs-type", "state", *TINY,
+                      "--run-dir", str(tmp_path), "--precision", "bf16", check=False)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "--precision bf16" in proc.stderr
+    assert not any(tmp_path.iterdir())
