@@ -163,6 +163,10 @@ class Args:
     """Adam learning rate of the world model"""
     grad_clip: float = 100.0
     """gradient norm clipping of every optimiser"""
+    adam_eps: float = 1e-4
+    """epsilon of every Adam optimiser (Dreamer v1's 1e-4; torch's default is 1e-8)"""
+    imagine_after_model_step: bool = False
+    """step the world model before imagining (off: Dreamer v1 computes all three losses with the same parameters)"""
 
     # Actor-critic
     actor_lr: float = 8e-5
@@ -1087,21 +1091,29 @@ class Agent(nn.Module):
             functorch_config.donated_buffer = False  # the actor's backward retains the graph for the value's
             self.wm.rssm.img_step = torch.compile(self.wm.rssm.img_step)
             self.wm.rssm.obs_step = torch.compile(self.wm.rssm.obs_step)
-        self.model_opt = torch.optim.Adam(self.wm.parameters(), lr=args.model_lr)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr)
-        self.value_opt = torch.optim.Adam(self.value.parameters(), lr=args.value_lr)
+        self.model_opt = torch.optim.Adam(self.wm.parameters(), lr=args.model_lr, eps=args.adam_eps)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr, eps=args.adam_eps)
+        self.value_opt = torch.optim.Adam(self.value.parameters(), lr=args.value_lr, eps=args.adam_eps)
 
     def optimizers(self):
         return {"model": self.model_opt, "actor": self.actor_opt, "value": self.value_opt}
 
 
 def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_mask=None) -> dict:
-    """One Dreamer update: world model on the batch, then actor and value in imagination from its posteriors."""
+    """One Dreamer update: the world-model loss on the batch, actor and value losses in imagination from its
+    posteriors. As in Dreamer v1, all three are computed with the parameters before this update and then stepped
+    (imagination rolls the model as it was); --imagine-after-model-step steps the model before imagining."""
     timings = {}
     t0 = time.perf_counter()
     wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask,
                                               args.obs_std)
-    metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(), args.grad_clip)
+
+    def model_step():  # backward into the model's parameters only, then its Adam step
+        metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(),
+                                                           args.grad_clip)
+
+    if args.imagine_after_model_step:
+        model_step()
     timings["world_model"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -1119,6 +1131,10 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
                                                        args.grad_clip)
     metrics["charts/imagined_return"] = returns.mean()
     timings["actor_critic"] = time.perf_counter() - t0
+    if not args.imagine_after_model_step:  # last: the actor's and value's graphs read the model's old weights
+        t0 = time.perf_counter()
+        model_step()
+        timings["world_model"] += time.perf_counter() - t0
     return {"metrics": metrics, "timings": timings}
 
 
@@ -1198,7 +1214,7 @@ class Addressing:
         self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth,
                               args.address_layer_norm, args.address_reward_input)
         self.net = set_speed_options(self.net, args.precision, args.channels_last).to(device)
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr, eps=args.adam_eps)
         self.method, self.device = args.method, device
         self.stop_grad_x = args.address_stop_grad_x
         if self.stop_grad_x is None:
@@ -1672,6 +1688,8 @@ def setup_run(args: Args):
             saved = json.load(f)
         saved.setdefault("obs_std", 1.0)  # runs saved before --obs-std existed had a unit-variance decoder
         saved.setdefault("address_reward_input", True)  # and f_φ read the stored rewards before the flag existed
+        saved.setdefault("adam_eps", 1e-8)  # and Adam had torch's epsilon,
+        saved.setdefault("imagine_after_model_step", True)  # and the model stepped before imagination
         valid = {f.name for f in dataclasses.fields(Args)}
         args = dataclasses.replace(Args(**{k: v for k, v in saved.items() if k in valid}), resume=args.resume,
                                    device=args.device)

@@ -1,6 +1,7 @@
 """The fast paths compute what the plain path computes: same losses and gradients on a fixed batch (within a stated
 tolerance), same batches with and without prefetch, same episodes with and without parallel envs."""
 import copy
+import dataclasses
 import functools
 
 import numpy as np
@@ -65,7 +66,7 @@ def test_one_value_pass_matches_the_two_pass_update():
     """train_step computes the value once for both losses; its parameter updates equal those of the plain recipe:
     actor loss with the value frozen, then the value loss on a second pass over detached features."""
     args = rd.Args(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=4,
-                   free_nats=0.0, obs_std=1.0, batch_size=3, seq_len=5)
+                   free_nats=0.0, obs_std=1.0, batch_size=3, seq_len=5, imagine_after_model_step=True)
     torch.manual_seed(0)
     agent = rd.Agent((3,), 2, args)
     reference = copy.deepcopy(agent)
@@ -99,6 +100,44 @@ def test_one_value_pass_matches_the_two_pass_update():
 
     for (name, p), p_ref in zip(agent.named_parameters(), ref.parameters()):
         assert torch.allclose(p, p_ref, atol=1e-6), name
+
+
+def test_dreamer_v1_order_imagines_with_the_model_before_its_step():
+    """The default (Dreamer v1): the world-model, actor and value losses all use the parameters before the update;
+    the model steps last. Reference: the same three losses from one copy of the agent, then the three Adam steps."""
+    args = rd.Args(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=4,
+                   free_nats=0.0, obs_std=1.0, batch_size=3, seq_len=5)
+    assert not args.imagine_after_model_step and args.adam_eps == 1e-4
+    torch.manual_seed(0)
+    agent = rd.Agent((3,), 2, args)
+    reference, model_first = copy.deepcopy(agent), copy.deepcopy(agent)
+    assert reference.model_opt.defaults["eps"] == 1e-4
+    rng = np.random.default_rng(0)
+    batch = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(3, 5, rng), "cpu")
+    torch.manual_seed(1)
+    rd.train_step(agent, batch, args)
+
+    torch.manual_seed(1)
+    ref = reference
+    loss, post, _ = rd.world_model_loss(ref.wm, batch, args.free_nats, args.kl_scale, obs_std=args.obs_std)
+    with rd.Freeze(ref.wm, ref.value):
+        feats = rd.imagine(ref.wm, ref.actor, rd.flatten_states(post), args.horizon)
+        returns, weights, _ = rd.imagined_returns(ref.wm, ref.value, feats, args.gamma, args.return_lambda)
+    value_pred = ref.value(feats[:-1].detach()).squeeze(-1)
+    value_loss = -(weights * rd.gaussian_loglik(value_pred, returns.detach(), 0)).mean()
+    for opt, module, part_loss in ((ref.actor_opt, ref.actor, -(weights * returns).mean()),
+                                   (ref.value_opt, ref.value, value_loss), (ref.model_opt, ref.wm, loss)):
+        opt.zero_grad()
+        part_loss.backward(inputs=list(module.parameters()))
+        nn.utils.clip_grad_norm_(module.parameters(), args.grad_clip)
+        opt.step()
+    for (name, p), p_ref in zip(agent.named_parameters(), ref.parameters()):
+        assert torch.allclose(p, p_ref, atol=1e-6), name
+    # and the order matters: stepping the model first gives another actor
+    torch.manual_seed(1)
+    rd.train_step(model_first, batch, dataclasses.replace(args, imagine_after_model_step=True))
+    assert not torch.allclose(rd.nn.utils.parameters_to_vector(model_first.actor.parameters()),
+                              rd.nn.utils.parameters_to_vector(agent.actor.parameters()))
 
 
 def test_compiled_rssm_gives_the_eager_losses(monkeypatch):
