@@ -1450,13 +1450,10 @@ def read_checkpoint(path: str, args: Args) -> Optional[dict]:
 
 
 def load_state(path: str, module, state_dict: dict):
-    """module.load_state_dict, naming the first mismatch in one line (not torch's list of every tensor)."""
-    own = module.state_dict()
-    for k in sorted(own.keys() | state_dict.keys()):
-        if k not in own or k not in state_dict or own[k].shape != state_dict[k].shape:
-            there, here = (tuple(d[k].shape) if k in d else "absent" for d in (state_dict, own))
-            raise UsageError(f"{path} does not match args.json: {k} is {there} there, {here} from args.json")
-    module.load_state_dict(state_dict)
+    try:
+        module.load_state_dict(state_dict)
+    except RuntimeError as e:  # torch gives a line per tensor: the first one names the mismatch
+        raise UsageError(f"{path} does not match args.json: {str(e).splitlines()[1].strip()[:200]}") from None
 
 
 def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
