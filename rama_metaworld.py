@@ -85,8 +85,8 @@ class Args:
     run_dir: str = "runs"
     """the folder that holds run folders"""
     resume: Optional[str] = None
-    """a run folder to continue: its saved args are used (only the RESUME_FLAGS, e.g. --total-steps, may be given
-    beside it); the step count comes from its episodes, the update count from its checkpoint"""
+    """a run folder to continue with the args in its args.json; beside it only RESUME_FLAGS may be given
+    (--total-steps to extend the run, --device, the evaluation, logging and speed flags)"""
     track: bool = False
     """log to Weights & Biases as well (needs `pip install wandb`)"""
     wandb_project: str = "rama"
