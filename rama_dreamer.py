@@ -31,11 +31,14 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering; must be set before mujoco is imported
 
 import dataclasses
+import fcntl
 import functools
 import glob
 import json
+import multiprocessing
 import platform
 import random
+import signal
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -80,7 +83,8 @@ class Args:
     run_dir: str = "runs"
     """the folder that holds run folders"""
     resume: Optional[str] = None
-    """a run folder to continue (its saved args are used; the step count comes from its episodes)"""
+    """a run folder to continue with the args in its args.json; beside it only RESUME_FLAGS may be given
+    (--total-steps to extend the run, --device, the evaluation, logging and speed flags)"""
     track: bool = False
     """log to Weights & Biases as well (needs `pip install wandb`)"""
     wandb_project: str = "rama"
@@ -254,25 +258,33 @@ def check_args(args: Args) -> None:
     positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
                 "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
                 "prefill_episodes", "benchmark_updates", "prior_max_episodes", "address_batch", "address_units",
-                "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every", "num_envs"]
+                "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every", "model_lr",
+                "actor_lr", "value_lr", "address_lr", "grad_clip", "address_grad_clip", "num_envs"]
     for name in positive:
-        if getattr(args, name) <= 0:
+        if not getattr(args, name) > 0:  # `not >`: NaN is refused too
             raise UsageError(f"--{name.replace('_', '-')} must be > 0 (got {getattr(args, name)})")
     for name in ["eval_episodes", "address_imagine_starts"]:
         if getattr(args, name) < 0:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
     if args.obs_std is not None and args.obs_std <= 0:
         raise UsageError(f"--obs-std must be > 0 (got {args.obs_std})")
-    if args.obs_type == "pixels":
-        decoder_last_layer(args.image_size)  # raises a UsageError naming --image-size
     if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
         raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
     if not 0.0 <= args.address_prob <= 1.0 or not 0.0 <= args.current_fraction <= 1.0:
         raise UsageError("--address-prob and --current-fraction must be in [0, 1]")
     if args.method == "dreamer" and args.prior_dirs:
         raise UsageError("--prior-dirs needs a method that uses prior data (uniform, vrama, rrama, rbrama)")
-    if args.seq_len < 2:
-        raise UsageError(f"--seq-len must be >= 2 (got {args.seq_len})")
+    if args.seq_len < 2 or args.horizon < 2:
+        raise UsageError(f"--seq-len and --horizon must be >= 2 (got {args.seq_len}, {args.horizon})")
+    if conv_sizes(args.image_size)[-1] < 1:
+        raise UsageError(f"--image-size must be >= 46 for the four stride-2 convs (got {args.image_size})")
+    if not task_list(args):
+        raise UsageError("--task-sequence names no task")
+    if args.track:
+        try:
+            import wandb  # noqa: F401
+        except ImportError:
+            raise UsageError("--track needs wandb: pip install wandb") from None
     if args.time_limit // args.action_repeat < args.seq_len:
         raise UsageError(f"--seq-len {args.seq_len} is longer than an episode "
                          f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
@@ -291,10 +303,47 @@ def task_list(args: Args) -> list:
 
 
 ADDRESSED_METHODS = ("vrama", "rrama", "rbrama")
+# the flags that may be given beside --resume (they change neither the networks nor what was collected); the other
+# flags come from the run's args.json
+RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
+                "precision", "channels_last", "compile", "prefetch")
 
 
 class UsageError(Exception):
-    """Bad input from the command line or from files: printed as one line, exit code 2."""
+    """Bad input from the command line or from files, or a run that had to stop: printed as one line; exit code 2,
+    or `code` (1: non-finite losses; 128 + signal number: stopped by SIGINT/SIGTERM)."""
+
+    def __init__(self, message: str, code: int = 2):
+        super().__init__(message)
+        self.code = code
+
+
+def given_flags(argv: list) -> set:
+    """The Args fields named on a command line (tyro spells them --foo-bar, --foo-bar=x, --no-foo-bar)."""
+    names = {f.name for f in dataclasses.fields(Args)}
+    given = {a[2:].split("=")[0].replace("-", "_") for a in argv if a.startswith("--")}
+    return {n if n in names else n[3:] for n in given if n in names or n[3:] in names}
+
+
+STOP = {"signal": None, "run_path": None}  # set by SIGINT/SIGTERM: the loops stop at their next safe point
+
+
+def request_stop(signum, frame):
+    """SIGINT or SIGTERM (what clusters send before preemption): stop after the current update or env step, the run
+    folder holding only complete episodes and a checkpoint consistent with them; a second signal stops at once."""
+    if STOP["signal"] is not None:
+        raise KeyboardInterrupt
+    STOP["signal"] = signum
+
+
+def resume_hint() -> str:
+    run_path = STOP["run_path"]
+    return f"; continue with: python {os.path.basename(__file__)} --resume {run_path}" if run_path else ""
+
+
+def check_stop():
+    if STOP["signal"] is not None:
+        raise UsageError(f"stopped by {signal.Signals(STOP['signal']).name}{resume_hint()}", 128 + STOP["signal"])
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -334,6 +383,8 @@ class DMCEnv:
         self._obs_type, self._repeat = obs_type, action_repeat
         self._max_agent_steps = time_limit // action_repeat
         self._camera = camera if camera >= 0 else (2 if spec["domain"] == "quadruped" else 0)
+        if self._camera >= self._env.physics.model.ncam:
+            raise UsageError(f"--camera {camera}: {spec['domain']} has cameras 0-{self._env.physics.model.ncam - 1}")
         action_spec = self._env.action_spec()
         self.action_size = int(action_spec.shape[0])
         self._renderer = mujoco.Renderer(self._env.physics.model.ptr, image_size, image_size)
@@ -1284,6 +1335,7 @@ def run_episode(env, act, seed: int, task: str, record: bool = False):
         if record:
             frames.append(env.render())
         done = terminated or truncated
+        check_stop()  # a stopped run drops the episode in flight
     return finish_episode(steps, env.extras(), task, success), frames
 
 
@@ -1294,6 +1346,9 @@ class GymAdapter(gymnasium.Env):
     and change nothing (Meta-World raises on a step past its time limit)."""
 
     def __init__(self, args: Args, env_id: str, seed: int):
+        if multiprocessing.parent_process() is not None:  # a worker: Ctrl-C and SIGTERM are the main process's
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
         self.env = make_env(args, env_id, seed)
         pixels = len(self.env.obs_shape) == 3
         self.observation_space = gymnasium.spaces.Box(0 if pixels else -np.inf, 255 if pixels else np.inf,
@@ -1335,6 +1390,7 @@ def run_parallel_episodes(envs, act, seeds: list, task: str) -> list:
             if "success" in info and info["_success"][i]:
                 success[i] = bool(success[i]) or bool(info["success"][i])
         done |= terminated | truncated
+        check_stop()
     return [finish_episode(steps[i], extras, task, success[i]) for i, extras in enumerate(envs.call("extras"))]
 
 
@@ -1379,18 +1435,62 @@ class Logger:
             self.wandb.finish()
 
 
-def save_checkpoint(path: str, agent: Agent, state: dict):
-    """Atomic like the episodes: a temp file, then a rename."""
-    payload = {"agent": agent.state_dict(), "optimizers": {k: o.state_dict() for k, o in agent.optimizers().items()},
-               "state": state, "rng": {"python": random.getstate(), "numpy": np.random.get_state(),
-                                       "torch": torch.get_rng_state()}}
+def checked_args(args: Args) -> dict:
+    """What a checkpoint must have been saved with (as JSON has it): all args but those --resume may change."""
+    saved = json.loads(json.dumps(dataclasses.asdict(args)))
+    return {k: v for k, v in saved.items() if k not in RESUME_FLAGS + ("resume", "run_dir")}
+
+
+def write_checkpoint(path: str, payload: dict):
+    """Atomic like the episodes (a temp file, then a rename); the one before stays as PATH.prev until the new one is
+    in place, for a damaged newest file to fall back to."""
     torch.save(payload, path + ".tmp")
+    if os.path.exists(path):
+        os.replace(path, path + ".prev")
     os.replace(path + ".tmp", path)
 
 
-def load_checkpoint(path: str, agent: Agent) -> dict:
-    payload = torch.load(path, map_location=next(agent.parameters()).device, weights_only=False)
-    agent.load_state_dict(payload["agent"])
+def read_checkpoint(path: str, args: Args) -> Optional[dict]:
+    """The newest loadable of PATH and PATH.prev (on the CPU; None when neither exists), saying so when it falls
+    back; one line naming the file when neither loads or when it was saved with other args than args.json's."""
+    unreadable = []
+    for candidate in (path, path + ".prev"):
+        if not os.path.exists(candidate):
+            continue
+        try:
+            payload = torch.load(candidate, map_location="cpu", weights_only=False)
+            saved = payload.get("args", {})  # checkpoints written before it was stored: shapes are checked on load
+        except Exception as e:
+            unreadable.append(f"{candidate}: not a readable checkpoint ({type(e).__name__}: {str(e)[:80]!r})")
+            continue
+        now = checked_args(args)
+        diff = [f"{k} {saved[k]!r} there, {now[k]!r} in args.json" for k in saved if k in now and saved[k] != now[k]]
+        if diff:
+            raise UsageError(f"{candidate} does not match args.json: " + "; ".join(diff))
+        if unreadable:
+            print(f"warning: {unreadable[0]}; falling back to {candidate}", flush=True)
+        return payload
+    if unreadable:
+        raise UsageError("; ".join(unreadable) + " (remove it to restart the networks from the episodes)")
+    return None
+
+
+def load_state(path: str, module, state_dict: dict):
+    try:
+        module.load_state_dict(state_dict)
+    except RuntimeError as e:  # torch gives a line per tensor: the first one names the mismatch
+        raise UsageError(f"{path} does not match args.json: {str(e).splitlines()[1].strip()[:200]}") from None
+
+
+def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
+    payload = {"agent": agent.state_dict(), "optimizers": {k: o.state_dict() for k, o in agent.optimizers().items()},
+               "state": state, "rng": {"python": random.getstate(), "numpy": np.random.get_state(),
+                                       "torch": torch.get_rng_state()}, "args": checked_args(args)}
+    write_checkpoint(path, payload)
+
+
+def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
+    load_state(path, agent, payload["agent"])
     for name, opt in agent.optimizers().items():
         opt.load_state_dict(payload["optimizers"][name])
     random.setstate(payload["rng"]["python"])
@@ -1590,12 +1690,21 @@ def benchmark(args: Args):
 # ----------------------------------------------------------------------------------------------------------
 # 8. Training loop
 # ----------------------------------------------------------------------------------------------------------
-def setup_run(args: Args):
-    """Create (or reopen, with --resume) the run folder; returns (args, run_path)."""
-    if args.resume:
-        args_path = os.path.join(args.resume, "args.json")
-        if not os.path.isfile(args_path):
-            raise UsageError(f"--resume {args.resume}: no args.json there (not a run folder)")
+def resolve_run(args: Args, given: set):
+    """The run's args and folder, checked, nothing written: a new folder's name, or --resume's folder with its saved
+    args and the RESUME_FLAGS given beside it (any other flag there is refused)."""
+    if not args.resume:
+        env_name = "__".join(t.replace("/", "_") for t in task_list(args)[:1]) + ("_seq" if args.task_sequence else "")
+        return args, os.path.join(args.run_dir, f"{env_name}__{args.exp_name}__{args.method}__{args.seed}__"
+                                                f"{int(time.time())}")
+    args_path = os.path.join(args.resume, "args.json")
+    if not os.path.isfile(args_path):
+        raise UsageError(f"--resume {args.resume}: no args.json there (not a run folder)")
+    refused = sorted(given - set(RESUME_FLAGS) - {"resume"})
+    if refused:
+        raise UsageError(f"--resume continues a run with its saved args: {', '.join(flag(n) for n in refused)} may "
+                         f"not be given with it (only {', '.join(flag(n) for n in RESUME_FLAGS)})")
+    try:
         with open(args_path) as f:
             saved = json.load(f)
         saved.setdefault("obs_std", 1.0)  # runs saved before --obs-std existed had a unit-variance decoder
@@ -1603,20 +1712,37 @@ def setup_run(args: Args):
         saved.setdefault("adam_eps", 1e-8)  # and Adam had torch's epsilon,
         saved.setdefault("imagine_after_model_step", True)  # and the model stepped before imagination
         valid = {f.name for f in dataclasses.fields(Args)}
-        args = dataclasses.replace(Args(**{k: v for k, v in saved.items() if k in valid}), resume=args.resume,
-                                   device=args.device)
-        check_args(args)
-        return args, args.resume
-    env_name = "__".join(t.replace("/", "_") for t in task_list(args)[:1]) + ("_seq" if args.task_sequence else "")
-    run_name = f"{env_name}__{args.exp_name}__{args.method}__{args.seed}__{int(time.time())}"
-    run_path = os.path.join(args.run_dir, run_name)
+        resumed = dataclasses.replace(Args(**{k: v for k, v in saved.items() if k in valid}), resume=args.resume,
+                                      **{k: getattr(args, k) for k in given & set(RESUME_FLAGS)})
+        check_args(resumed)
+    except (ValueError, TypeError, AttributeError, UsageError) as e:  # JSONDecodeError is a ValueError
+        raise UsageError(f"{args_path}: {e}") from None
+    return resumed, args.resume
+
+
+def flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def open_run(args: Args, run_path: str, rewrite_args: bool):
+    """Create (or reopen) the run folder and lock it for this process (the lock goes with the process, even on
+    kill -9): a second writer gets one line. Writes args.json for a new run, or a resumed one given RESUME_FLAGS."""
     try:
         os.makedirs(run_path, exist_ok=True)
-        with open(os.path.join(run_path, "args.json"), "w") as f:
-            json.dump(dataclasses.asdict(args), f, indent=2)
+        lock = open(os.path.join(run_path, ".lock"), "a")
     except OSError as e:
-        raise UsageError(f"--run-dir {args.run_dir!r} is not writable ({e.strerror})") from None
-    return args, run_path
+        raise UsageError(f"{'--resume' if args.resume else '--run-dir'}: cannot write {run_path} ({e.strerror})") \
+            from None
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        raise UsageError(f"{run_path}: another process is writing this run folder (it holds its .lock)") from None
+    if rewrite_args or not args.resume:
+        path = os.path.join(run_path, "args.json")
+        with open(path + ".tmp", "w") as f:
+            json.dump(dataclasses.asdict(dataclasses.replace(args, resume=None)), f, indent=2)
+        os.replace(path + ".tmp", path)
+    return lock
 
 
 def every(n: int, count: int) -> bool:
@@ -1687,14 +1813,15 @@ def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressin
     return metrics
 
 
-def save_addressing(path: str, addressing: Addressing):
-    torch.save({"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict()}, path + ".tmp")
-    os.replace(path + ".tmp", path)
+def save_addressing(path: str, addressing: Addressing, args: Args):
+    write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
+                            "args": checked_args(args)})
 
 
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
-               addressing: Optional[Addressing], rng, address_path: str):
-    """Algorithm 2 on one task: a fresh agent, the shared M and f_φ; resumes from task_path when it has data."""
+               addressing: Optional[Addressing], rng, address_path: str, checkpoint: Optional[dict]):
+    """Algorithm 2 on one task: a fresh agent, the shared M and f_φ; resumes from task_path when it has data (and
+    from `checkpoint`, read by main)."""
     episode_dir = os.path.join(task_path, "episodes")
     os.makedirs(episode_dir, exist_ok=True)
     # the current task's replay M_τ: episodes already on disk count (a resumed run recovers its step count here)
@@ -1718,10 +1845,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     agent = Agent(env.obs_shape, env.action_size, args).to(device)
     policy = Policy(agent, device)
     n_params = sum(p.numel() for p in agent.parameters())
+    # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
+    # updates it still has to do (a run stopped mid-round finishes it; one killed after a round does not redo it)
     state = {"updates": 0, "next_eval": args.eval_every}
     checkpoint_path = os.path.join(task_path, "checkpoint.pt")
-    if os.path.exists(checkpoint_path):
-        state = load_checkpoint(checkpoint_path, agent)
+    if checkpoint is not None:
+        state = load_checkpoint(checkpoint_path, checkpoint, agent)
         rng = np.random.default_rng([args.seed, len(replay)])  # fresh stream: resume is not bit-identical
     sampler = ChunkSampler(replay, args.batch_size, args.seq_len, np.random.default_rng([seed, len(replay), 1]),
                            device, args.prefetch)
@@ -1742,28 +1871,45 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         while env_steps < args.total_steps:
             # (a) C updates on chunks of the replay (mixed with M), once there is something to learn from
             if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
-                sums, timings, picks = {}, {}, []
-                for x, waited in sampler.batches(updates_per_round):
+                if state.get("round_at") != len(replay):
+                    state["round_at"], state["round_left"] = len(replay), updates_per_round
+                rows, sums, timings, picks, done = [], {}, {}, [], 0
+                for x, waited in sampler.batches(state["round_left"]):
+                    if STOP["signal"]:  # finish the current update, not the round
+                        break
                     out = update(agent, x, multitask, addressing, args, rng, device, env.task_name, state["updates"])
                     out["timings"]["batch_sampling"] += waited
-                    state["updates"] += 1
-                    for k, v in out["metrics"].items():
-                        sums[k] = sums.get(k, 0.0) + v.detach()
+                    state["updates"], done = state["updates"] + 1, done + 1
+                    rows.append({k: v.detach() for k, v in out["metrics"].items()})
                     for k, v in out["timings"].items():
                         timings[k] = timings.get(k, 0.0) + v
                     if out["picks"] is not None:
                         picks.append(out["picks"])
-                metrics = {k: v.item() / updates_per_round for k, v in sums.items()}
+                for row in rows:
+                    for k, v in row.items():
+                        sums[k] = sums.get(k, 0.0) + v
+                metrics = {k: v.item() / max(done, 1) for k, v in sums.items()}
+                # one check per round (the sums carry any NaN or inf): the round is then neither saved nor logged
+                finite = all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in agent.parameters())
+                if not finite:
+                    bad = [(i, k) for i, row in enumerate(rows) for k, v in row.items() if not v.isfinite()]
+                    i, key = (bad or [(done - 1, "weights")])[0]
+                    logger.log(env_steps, {"errors/non_finite_update": state["updates"] - done + i + 1})
+                    raise UsageError(f"non-finite {key} at update {state['updates'] - done + i + 1}: stopped without "
+                                     f"saving its round (is a learning rate too high?)", 1)
+                state["round_left"] -= done
                 if "addressing/refresh_seconds" in sums:  # a sum of refreshes, not a per-update mean
                     metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
-                metrics.update({f"time/{k}_per_update": v / updates_per_round for k, v in timings.items()})
-                if args.method != "dreamer":
-                    metrics.update(picks_metrics(picks, multitask, addressing, updates_per_round, args.seq_len))
+                metrics.update({f"time/{k}_per_update": v / max(done, 1) for k, v in timings.items()})
+                if args.method != "dreamer" and done:
+                    metrics.update(picks_metrics(picks, multitask, addressing, done, args.seq_len))
                 metrics["charts/updates"] = state["updates"]
-                logger.log(env_steps, metrics)
-                save_checkpoint(checkpoint_path, agent, state)
-                if addressing is not None:
-                    save_addressing(address_path, addressing)
+                if done:  # the checkpoint first: a kill between the two loses this row rather than repeating it
+                    save_checkpoint(checkpoint_path, agent, state, args)
+                    if addressing is not None:
+                        save_addressing(address_path, addressing, args)
+                    logger.log(env_steps, metrics)
+                check_stop()
                 if args.capture_video:
                     batch = to_torch(replay.sample(4, args.seq_len, rng), device)
                     write_gif(os.path.join(task_path, "videos", f"openloop_{env_steps:08d}.gif"),
@@ -1793,11 +1939,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     if frames:
                         write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
                 eval_metrics = episode_metrics("eval", episodes)
+                while state["next_eval"] <= env_steps:
+                    state["next_eval"] += args.eval_every
+                save_checkpoint(checkpoint_path, agent, state, args)  # a resumed run does not repeat this evaluation
                 logger.log(env_steps, eval_metrics)
                 progress.write(f"step {env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
                 sys.stdout.flush()
-                while state["next_eval"] <= env_steps:
-                    state["next_eval"] += args.eval_every
 
             # (c) collect one episode per env (random actions while prefilling) and store each atomically
             first = len(replay)
@@ -1836,13 +1983,15 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             workers.close()
 
 
-def main(args: Args):
+def main(args: Args, given: frozenset = frozenset()):
+    """Everything that can be checked (flags, env ids, prior episodes, the resumed folder and its checkpoints) is
+    checked before the run folder is created or touched."""
     args = resolve_defaults(args)
     check_args(args)
     if args.benchmark:
         return benchmark(args)
+    args, run_path = resolve_run(args, set(given))
     device = resolve_device(args.device)
-    args, run_path = setup_run(args)
     seed_everything(args.seed)
     rng = np.random.default_rng(args.seed)
     tasks = task_list(args)
@@ -1859,24 +2008,34 @@ def main(args: Args):
         counts = {t: multitask.tasks.count(t) for t in sorted(set(multitask.tasks))}
         print(f"multitask buffer: {len(multitask)} prior episodes {counts}, "
               f"{multitask.memory_bytes() / 2**30:.2f} GiB in memory", flush=True)
-    addressing = None
+    task_paths = [run_path] if len(tasks) == 1 else [os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
+                                                     for k, env_id in enumerate(tasks)]
+    checkpoints = {p: read_checkpoint(os.path.join(p, "checkpoint.pt"), args) for p in task_paths}
     address_path = os.path.join(run_path, "address.pt")
+    saved_address = read_checkpoint(address_path, args)
+    lock = open_run(args, run_path, rewrite_args=bool(given & set(RESUME_FLAGS)))  # noqa: F841 (held till exit)
+    STOP["run_path"] = run_path
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+    addressing = None
     if args.method in ADDRESSED_METHODS:
         addressing = Addressing(obs_shape, action_size, args, device)
-        if os.path.exists(address_path):
-            saved = torch.load(address_path, map_location=device)
-            addressing.net.load_state_dict(saved["net"])
-            addressing.opt.load_state_dict(saved["opt"])
+        if saved_address is not None:
+            load_state(address_path, addressing.net, saved_address["net"])
+            addressing.opt.load_state_dict(saved_address["opt"])
 
     # Algorithm 1: tasks in order; the agent restarts per task, M and f_φ carry over
-    for k, env_id in enumerate(tasks):
-        task_path = run_path if len(tasks) == 1 else os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
-        train_task(args, env_id, args.seed + 1000 * k, task_path, device, multitask, addressing, rng, address_path)
+    for k, (env_id, task_path) in enumerate(zip(tasks, task_paths)):
+        train_task(args, env_id, args.seed + 1000 * k, task_path, device, multitask, addressing, rng, address_path,
+                   checkpoints.pop(task_path))
 
 
 if __name__ == "__main__":
     try:
-        main(tyro.cli(Args))
+        main(tyro.cli(Args), given_flags(sys.argv[1:]))
     except UsageError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+        print(f"{'error: ' if e.code < 128 else ''}{e}", file=sys.stderr)
+        sys.exit(e.code)
+    except KeyboardInterrupt:  # a second Ctrl-C, or one before the run folder exists
+        print(f"interrupted{resume_hint()}", file=sys.stderr)
+        sys.exit(130)

@@ -213,5 +213,5 @@ def test_resume_of_a_run_saved_before_obs_std_keeps_the_unit_decoder(tmp_path):
     saved = dataclasses.asdict(rd.resolve_defaults(rd.Args(obs_type="state")))
     del saved["obs_std"]  # an args.json written before the flag existed
     (tmp_path / "args.json").write_text(json.dumps(saved))
-    args, _ = rd.setup_run(rd.Args(resume=str(tmp_path)))
+    args, _ = rd.resolve_run(rd.Args(resume=str(tmp_path)), {"resume"})
     assert args.obs_type == "state" and args.obs_std == 1.0

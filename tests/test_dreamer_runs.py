@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
 from helpers import ROOT, TINY, run_script
 
@@ -101,17 +102,16 @@ def test_resume_after_sigkill(tmp_path):
             assert ep["reward"].shape == (51,)
     # resume with a total that is 3 episodes further: it continues the step count from the episode folder
     target = (kept + 3) * 100
-    with open(os.path.join(run_path, "args.json")) as f:
-        saved = json.load(f)
-    saved["total_steps"] = target
-    with open(os.path.join(run_path, "args.json"), "w") as f:
-        json.dump(saved, f)
-    proc = run("--resume", run_path)
+    proc = run("--resume", run_path, "--total-steps", str(target))
     assert f"{kept} episodes on disk ({kept * 100} steps)" in proc.stdout
     names = sorted(os.path.basename(p) for p in glob.glob(os.path.join(run_path, "episodes", "*.npz")))
     assert names == [f"{i:06d}-50.npz" for i in range(kept + 3)]
     steps = [row["step"] for row in read_metrics(run_path) if "charts/episodic_return" in row]
     assert steps[-1] == target and steps == sorted(steps)
+    # the update count of an uninterrupted run: one round of 2 updates at each episode count from 1 to kept + 2,
+    # whether the kill landed in a round (redone from the checkpoint before) or after one (not redone)
+    state = torch.load(os.path.join(run_path, "checkpoint.pt"), weights_only=False)["state"]
+    assert state["updates"] == 2 * (kept + 2)
 
 
 @pytest.mark.parametrize("flags, flag_named", [
