@@ -834,10 +834,15 @@ class ConvDecoder(nn.Module):
 
     def forward(self, feat):  # (B, T, F) -> (B, T, 3, H, W)
         with torch.autocast(feat.device.type, torch.bfloat16, enabled=self.bf16):
-            x = self.linear(feat.flatten(0, 1))[:, :, None, None]  # (B*T, 32*depth, 1, 1)
+            x = self.linear(feat.flatten(0, 1))  # (B*T, 32*depth)
+            # the first transposed conv reads a 1x1 input: it is a matrix product with its weight (in, out*5*5), the
+            # same numbers 6x faster on CPU than oneDNN's transposed-conv kernel (tested against it)
+            first = self.net[0]
+            x = (x @ first.weight.to(x.dtype).flatten(1)).unflatten(1, first.weight.shape[1:])  # (B*T, 4d, 5, 5)
+            x = x + first.bias.to(x.dtype)[:, None, None]
             if self.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
-            x = self.net(x)
+            x = self.net[1:](x)
         return x.float().unflatten(0, feat.shape[:2])
 
 

@@ -248,3 +248,18 @@ def test_bf16_refusal_is_one_line_on_this_machine(tmp_path):
                       "--run-dir", str(tmp_path), "--precision", "bf16", check=False)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "--precision bf16" in proc.stderr
     assert not any(tmp_path.iterdir())
+
+
+def test_decoder_first_layer_as_a_matrix_product_equals_the_transposed_conv():
+    """ConvDecoder computes its first transposed conv (on a 1x1 input) as a matrix product: same output and gradients
+    as running nn.ConvTranspose2d itself."""
+    torch.manual_seed(0)
+    decoder = rd.ConvDecoder(10, (64, 64, 3), depth=4)
+    feat = torch.randn(2, 3, 10, requires_grad=True)
+    y = decoder(feat)
+    plain = decoder.net(decoder.linear(feat.flatten(0, 1))[:, :, None, None]).unflatten(0, (2, 3))
+    assert y.shape == plain.shape == (2, 3, 3, 64, 64) and torch.allclose(y, plain, atol=1e-6)
+    params = [feat, decoder.net[0].weight, decoder.net[0].bias, decoder.linear.weight]
+    g, g_ref = (torch.autograd.grad(out.square().sum(), params) for out in (y, plain))
+    for a, b in zip(g, g_ref):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-5)
