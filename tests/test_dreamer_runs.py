@@ -154,18 +154,39 @@ def test_tiny_run_on_the_kitchen(tmp_path, task):
     assert {"losses/world_model", "charts/success_rate", "eval/success_rate"} <= keys
 
 
+def bench(*flags, timeout=300):
+    return run_script(os.path.join("benchmarks", "bench_update.py"), *flags, timeout=timeout)
+
+
 def test_benchmark_command_prints_every_method():
-    proc = run("--benchmark", "--obs-type", "state", "--benchmark-updates", "1", "--deter-size", "8",
-               "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8",
-               "--horizon", "3", "--benchmark-methods", "dreamer", "uniform", "rrama", "vrama", "rbrama",
-               "--num-envs", "2")
-    header, *lines = proc.stdout.splitlines()
+    proc = bench("--obs-type", "state", "--updates", "1", "--deter-size", "8", "--stoch-size", "4",
+                 "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8", "--horizon", "3",
+                 "--methods", "dreamer", "uniform", "rrama", "vrama", "rbrama", "--num-envs", "2")
+    header, columns, *lines = proc.stdout.splitlines()
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])  # --device auto times both when there is CUDA
     assert "machine: " in header and "precision fp32" in header
-    collection = [line for line in lines if " collection " in line]
-    rows = [line.split() for line in lines[1:] if " collection " not in line]
-    assert [(r[0], r[1], r[4]) for r in rows] == [(d, size, m) for d in ["cpu"] + (["cuda"] if len(rows) > 10 else [])
-                                                  for size in ("paper", "small")
+    assert [d for d in ("cpu", "cuda") if f"| {d} bf16: " in header] == devices
+    assert columns.split()[:6] == ["device", "size", "n", "L", "method", "s/update"]
+    collection = [line.split() for line in lines if " collection " in line]
+    rows = [line.split() for line in lines if " collection " not in line]
+    assert [(r[0], r[1], r[4]) for r in rows] == [(d, size, m) for d in devices for size in ("paper", "small")
                                                   for m in ("dreamer", "uniform", "rrama", "vrama", "rbrama")]
-    assert [line.split("env(s)")[0].split()[-1] for line in collection[:2]] == ["1", "2"]  # 1 env, then 2
-    assert all(float(line.split(":")[-1].split()[0]) > 0 for line in collection)
+    assert [(c[0], c[-5]) for c in collection] == [(d, n) for d in devices for n in ("1", "2")]  # 1 env, then 2
+    assert all(float(c[-3]) > 0 for c in collection)
     assert all(float(r[5]) > 0 for r in rows)
+
+
+def test_benchmark_times_the_metaworld_script():
+    proc = bench("--script", "rama_metaworld", "--obs-type", "state", "--updates", "1", "--sizes", "small",
+                 "--methods", "dreamer", "rrama", "--no-collection", "--device", "cpu", "--deter-size", "8",
+                 "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8",
+                 "--horizon", "3")
+    rows = [line.split() for line in proc.stdout.splitlines()[2:]]
+    assert [(r[0], r[1], r[4]) for r in rows] == [("cpu", "small", "dreamer"), ("cpu", "small", "rrama")]
+    assert "collection" not in proc.stdout
+
+
+def test_benchmark_refuses_a_bad_flag_in_one_line():
+    proc = run_script(os.path.join("benchmarks", "bench_update.py"), "--updates", "0", "--obs-type", "state",
+                      check=False, timeout=60)
+    assert proc.returncode == 2 and proc.stderr.strip() == "error: --updates must be > 0 (got 0)", proc.stderr
