@@ -1695,6 +1695,15 @@ def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressin
     return metrics
 
 
+def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: float) -> str:
+    """The plain-log line inside a round of updates: how far the round is, its speed and the time it has left."""
+    from tqdm import tqdm
+
+    rate = done / max(seconds, 1e-9)  # done >= 1 here
+    return (f"step {env_steps}/{total_steps} | update {done}/{todo} of this round | {rate:.3g} updates/s | "
+            f"round ETA {tqdm.format_interval((todo - done) / rate)}")
+
+
 def save_addressing(path: str, addressing: Addressing, args: Args):
     write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
                             "args": checked_args(args)})
@@ -1745,9 +1754,13 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
 
     from tqdm import tqdm
 
+    # a bar over env steps and, inside each round of C updates, one over its updates (updates/s, the round's ETA);
+    # without a terminal on stderr (nohup, CI, sweeps) or with --plain-log: plain lines, at least one per
+    # --log-interval-seconds inside a round and one per collected episode(s)
     progress = tqdm(total=args.total_steps, initial=min(env_steps, args.total_steps), unit="step", dynamic_ncols=True,
-                    disable=None)
+                    disable=True if args.plain_log else None)
     start_time, start_steps = time.time(), env_steps
+    last_line = time.time()  # when the last plain line was printed
     updates_per_round = args.updates_per_episode * args.num_envs  # C updates per collected episode
     try:
         while env_steps < args.total_steps:
@@ -1756,7 +1769,10 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 if state.get("round_at") != len(replay):
                     state["round_at"], state["round_left"] = len(replay), updates_per_round
                 rows, sums, timings, picks, done = [], {}, {}, [], 0
-                for x, waited in sampler.batches(state["round_left"]):
+                round_start, todo = time.time(), state["round_left"]
+                round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,
+                                 disable=progress.disable)
+                for x, waited in sampler.batches(todo):
                     if STOP["signal"]:  # finish the current update, not the round
                         break
                     out = update(agent, x, multitask, addressing, args, rng, device, env.task_name, state["updates"])
@@ -1767,6 +1783,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                         timings[k] = timings.get(k, 0.0) + v
                     if out["picks"] is not None:
                         picks.append(out["picks"])
+                    round_bar.update()  # no host sync: tqdm only reads the clock
+                    if progress.disable and time.time() - last_line >= args.log_interval_seconds:
+                        print(round_line(env_steps, args.total_steps, done, todo, time.time() - round_start),
+                              flush=True)
+                        last_line = time.time()
+                round_bar.close()
                 for row in rows:
                     for k, v in row.items():
                         sums[k] = sums.get(k, 0.0) + v
@@ -1855,6 +1877,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             if progress.disable:  # no terminal (nohup, CI): one plain line per round instead of the bar
                 print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "
                       f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
+                last_line = time.time()
     finally:
         progress.close()
         sampler.close()
