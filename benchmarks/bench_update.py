@@ -72,10 +72,10 @@ def parse(argv: list):
     """(script module, Options, the script's Args), from one command line: both sets of flags without prefixes."""
     script = importlib.import_module(script_flag(argv))
     Bench = dataclasses.make_dataclass("Bench", [
-        ("options", tyro.conf.OmitArgPrefixes[Options], dataclasses.field(default_factory=Options)),
-        ("args", tyro.conf.OmitArgPrefixes[script.Args], dataclasses.field(default_factory=script.Args))])
+        ("benchmark", tyro.conf.OmitArgPrefixes[Options], dataclasses.field(default_factory=Options)),
+        ("agent", tyro.conf.OmitArgPrefixes[script.Args], dataclasses.field(default_factory=script.Args))])
     bench = tyro.cli(Bench, args=argv, description=__doc__.split("\n\n")[0])
-    return script, bench.options, bench.args
+    return script, bench.benchmark, bench.agent
 
 
 def cpu_name() -> str:

@@ -31,6 +31,7 @@ def read_metrics(run_path):
         return [json.loads(line) for line in f]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("obs_type", ["pixels", "state"])
 def test_tiny_run_writes_a_complete_run_folder(tmp_path, obs_type):
     flags = ["--env-id", "dmc/walker-walk", "--obs-type", obs_type, "--run-dir", str(tmp_path), *TINY,
@@ -66,6 +67,7 @@ def _comparable(run_path):
             for row in read_metrics(run_path)]
 
 
+@pytest.mark.slow
 def test_same_seed_same_run_different_seed_different_run(tmp_path):
     flags = ["--env-id", "dmc/cartpole-swingup", "--obs-type", "state", *TINY, "--total-steps", "300"]
     for name, seed in [("a", 3), ("b", 3), ("c", 4)]:
@@ -75,6 +77,7 @@ def test_same_seed_same_run_different_seed_different_run(tmp_path):
     assert a != c
 
 
+@pytest.mark.slow
 def test_resume_after_sigkill(tmp_path):
     flags = ["--env-id", "dmc/cartpole-balance", "--obs-type", "state", "--run-dir", str(tmp_path), *TINY,
              "--total-steps", "100000"]
@@ -131,6 +134,7 @@ def test_bad_input_is_one_line_naming_the_flag(tmp_path, flags, flag_named):
     assert not os.listdir(tmp_path)  # nothing written for a refused run
 
 
+@pytest.mark.slow
 def test_unwritable_run_dir(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
@@ -139,6 +143,7 @@ def test_unwritable_run_dir(tmp_path):
     assert proc.returncode != 0 and len(lines) == 1 and "--run-dir" in lines[0], proc.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["bluebox", "bluecone"])
 def test_tiny_run_on_the_kitchen(tmp_path, task):
     no_horizon = [f for i, f in enumerate(TINY) if "--horizon" not in TINY[max(i - 1, 0):i + 1]]
@@ -158,6 +163,7 @@ def bench(*flags, timeout=300):
     return run_script(os.path.join("benchmarks", "bench_update.py"), *flags, timeout=timeout)
 
 
+@pytest.mark.slow
 def test_benchmark_command_prints_every_method():
     proc = bench("--obs-type", "state", "--updates", "1", "--deter-size", "8", "--stoch-size", "4",
                  "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8", "--horizon", "3",
@@ -176,6 +182,7 @@ def test_benchmark_command_prints_every_method():
     assert all(float(r[5]) > 0 for r in rows)
 
 
+@pytest.mark.slow
 def test_benchmark_times_the_metaworld_script():
     proc = bench("--script", "rama_metaworld", "--obs-type", "state", "--updates", "1", "--sizes", "small",
                  "--methods", "dreamer", "rrama", "--no-collection", "--device", "cpu", "--deter-size", "8",
@@ -186,6 +193,7 @@ def test_benchmark_times_the_metaworld_script():
     assert "collection" not in proc.stdout
 
 
+@pytest.mark.slow
 def test_benchmark_refuses_a_bad_flag_in_one_line():
     proc = run_script(os.path.join("benchmarks", "bench_update.py"), "--updates", "0", "--obs-type", "state",
                       check=False, timeout=60)
