@@ -9,7 +9,7 @@ Contents (each section sits under a `# ----` banner):
     1. imports              2. Args (every knob a flag)       3. environments (DeepMind Control, kitchen)
     4. episode storage, replay and the multitask buffer       5. networks (encoder, decoder, RSSM, heads, f_φ)
     6. losses: λ-returns, KL with free nats, the Dreamer update, the addressing objectives (Eqs. 1-3)
-    7. acting, logging, checkpoints, benchmark                8. the training loop (Algorithms 1 and 2)
+    7. acting, logging, checkpoints                           8. the training loop (Algorithms 1 and 2)
 
 Run:
     python rama_dreamer.py --env-id dmc/walker-walk                       # Dreamer, paper defaults (a GPU job)
@@ -19,7 +19,7 @@ Run:
     python rama_dreamer.py --env-id dmc/walker-walk --total-steps 400 --time-limit 100 --batch-size 4 \
         --seq-len 8 --updates-per-episode 2 --cnn-depth 4 --deter-size 16 --stoch-size 4 --hidden-size 16 \
         --mlp-units 16 --horizon 3                                         # tiny smoke run (seconds)
-    python rama_dreamer.py --benchmark                                    # seconds per update, every method
+    python benchmarks/bench_update.py                                     # seconds per update, every method
     python rama_dreamer.py --resume runs/<run>                            # continue a killed run
 """
 
@@ -36,7 +36,6 @@ import functools
 import glob
 import json
 import multiprocessing
-import platform
 import random
 import signal
 import sys
@@ -95,19 +94,10 @@ class Args:
     """evaluation episodes per evaluation"""
     capture_video: bool = False
     """save GIFs of evaluation episodes and of open-loop world-model predictions under `videos/`"""
-    benchmark: bool = False
-    """print seconds per update at the paper's size and a small size (on --device; auto = CPU, and CUDA when
-    present), then exit"""
-    benchmark_updates: int = 3
-    """timed updates per benchmark setting (after one warm-up update)"""
-    benchmark_methods: Tuple[str, ...] = ("dreamer", "uniform", "rrama", "vrama", "rbrama")
-    """methods the benchmark times"""
-    benchmark_sizes: Tuple[Literal["paper", "small"], ...] = ("paper", "small")
-    """sizes the benchmark times: paper (n=50, L=50), small (n=16, L=50)"""
-    benchmark_profile: bool = False
-    """instead of the timings: profile one paper-size `dreamer` update and print the operators that take the time"""
-    benchmark_collection: bool = True
-    """the benchmark also times collection (env steps per second, 1 env and --num-envs envs, --env-id)"""
+    plain_log: bool = False
+    """print plain lines instead of progress bars (always so without a terminal on stderr: nohup, CI, sweeps)"""
+    log_interval_seconds: float = 60.0
+    """plain-log mode: a progress line at least this often inside a round of updates (0: after every update)"""
 
     # Speed (none of these changes what is learned, up to floating-point rounding)
     precision: Literal["fp32", "bf16"] = "fp32"
@@ -257,14 +247,14 @@ def check_args(args: Args) -> None:
     """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
     positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
                 "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
-                "prefill_episodes", "benchmark_updates", "prior_max_episodes", "address_batch", "address_units",
+                "prefill_episodes", "prior_max_episodes", "address_batch", "address_units",
                 "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every", "model_lr",
                 "actor_lr", "value_lr", "address_lr", "grad_clip", "address_grad_clip", "num_envs"]
     for name in positive:
         if not getattr(args, name) > 0:  # `not >`: NaN is refused too
             raise UsageError(f"--{name.replace('_', '-')} must be > 0 (got {getattr(args, name)})")
-    for name in ["eval_episodes", "address_imagine_starts"]:
-        if getattr(args, name) < 0:
+    for name in ["eval_episodes", "address_imagine_starts", "log_interval_seconds"]:
+        if not getattr(args, name) >= 0:  # NaN is refused too
             raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
     if args.obs_std is not None and args.obs_std <= 0:
         raise UsageError(f"--obs-std must be > 0 (got {args.obs_std})")
@@ -290,8 +280,7 @@ def check_args(args: Args) -> None:
                          f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
     for env_id in task_list(args):
         make_env_spec(env_id)  # raises a UsageError naming --env-id
-    if not args.benchmark:  # the benchmark checks each device it times
-        check_precision(args.precision, resolve_device(args.device))
+    check_precision(args.precision, resolve_device(args.device))
 
 
 def task_list(args: Args) -> list:
@@ -306,7 +295,7 @@ ADDRESSED_METHODS = ("vrama", "rrama", "rbrama")
 # the flags that may be given beside --resume (they change neither the networks nor what was collected); the other
 # flags come from the run's args.json
 RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
-                "precision", "channels_last", "compile", "prefetch")
+                "plain_log", "log_interval_seconds", "precision", "channels_last", "compile", "prefetch")
 
 
 class UsageError(Exception):
@@ -1282,7 +1271,7 @@ def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title
 
 
 # ----------------------------------------------------------------------------------------------------------
-# 7. Acting, logging, checkpoints, benchmark
+# 7. Acting, logging, checkpoints
 # ----------------------------------------------------------------------------------------------------------
 class Policy:
     """Acts online in N envs at once: keeps the RSSM posteriors of the current episodes and picks actions from them."""
@@ -1569,7 +1558,7 @@ def seed_everything(seed: int):
 
 
 def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, task: str = "synthetic") -> Replay:
-    """Random episodes for the benchmark: no environment needed."""
+    """Random episodes for benchmarks/bench_update.py and the tests: no environment needed."""
     replay = Replay()
     for _ in range(episodes):
         shape = (length + 1, *obs_shape)
@@ -1578,118 +1567,6 @@ def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, ta
                     "reward": rng.uniform(0, 1, length + 1).astype(np.float32),
                     "terminal": np.zeros(length + 1, bool), "task": task})
     return replay
-
-
-def cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor()
-
-
-def benchmark_collection(args: Args, device) -> None:
-    """Env steps per second of collection with the agent's policy acting (rendering + one encoder and RSSM step per
-    agent step), in one env and in --num-envs subprocesses."""
-    args = dataclasses.replace(args, time_limit=min(args.time_limit, 400), total_steps=10**9)
-    env = make_env(args, args.env_id, args.seed)
-    policy = Policy(Agent(env.obs_shape, env.action_size, args).to(device), device)
-    rng = np.random.default_rng(args.seed)
-    for num_envs in sorted({1, args.num_envs}):
-        workers = None if num_envs == 1 else gymnasium.vector.AsyncVectorEnv(
-            [functools.partial(GymAdapter, args, args.env_id, args.seed + i) for i in range(num_envs)],
-            context="spawn", autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
-        for _ in range(2):  # the first round warms up (subprocess start, renderer, kernels); the second is timed
-            policy.reset(num_envs)
-            t0 = time.perf_counter()
-            if workers is None:
-                episodes = [run_episode(env, lambda o: policy.act(o[None], args.expl_noise, rng)[0], 0, "bench")[0]]
-            else:
-                episodes = run_parallel_episodes(workers, lambda o: policy.act(o, args.expl_noise, rng),
-                                                 list(range(num_envs)), "bench")
-            seconds = time.perf_counter() - t0
-        steps = sum(len(ep["reward"]) - 1 for ep in episodes) * args.action_repeat
-        print(f"{device.type:<6} collection {args.env_id} ({args.obs_type}), {num_envs} env(s): "
-              f"{steps / seconds:.0f} env steps/s", flush=True)
-        if workers is not None:
-            workers.close()
-    env.close()
-
-
-def profile_update(args: Args, obs_shape, replay: Replay, multitask: Replay, rng, device) -> None:
-    """Where the time of one paper-size Dreamer update goes, operator by operator (after a warm-up update)."""
-    from torch.profiler import ProfilerActivity, profile
-
-    run_args = dataclasses.replace(args, batch_size=50, seq_len=50, method="dreamer")
-    agent = Agent(obs_shape, 6, run_args).to(device)
-    batches = ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(2)
-    update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 0)
-    cuda = device.type == "cuda"
-    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
-        update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 1)
-        if cuda:
-            torch.cuda.synchronize()
-    print(prof.key_averages().table(sort_by="self_cuda_time_total" if cuda else "self_cpu_time_total", row_limit=25,
-                                    max_name_column_width=40), flush=True)
-
-
-def benchmark(args: Args):
-    """Seconds per full update (Algorithm 2: addressing + world model + actor + value) per method, at the paper's
-    size and a small size, on CPU and on CUDA when present. Synthetic episodes: no environment in the timing."""
-    unknown = set(args.benchmark_methods) - {"dreamer", "uniform", *ADDRESSED_METHODS}
-    if unknown:
-        raise UsageError(f"--benchmark-methods: unknown {sorted(unknown)}")
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
-    print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
-          f"{torch.__version__} | threads {torch.get_num_threads()}"
-          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "")
-          + f" | precision {args.precision} | channels-last {args.channels_last} | compile {args.compile}"
-          + "".join(f" | {d} bf16: {native_bf16(torch.device(d))[1]}" for d in devices), flush=True)
-    for device_name in devices:
-        check_precision(args.precision, torch.device(device_name))
-    obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else (24,)
-    rng = np.random.default_rng(args.seed)
-    replay = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng, task="current")
-    multitask = synthetic_replay(obs_shape, 6, episodes=4, length=500, rng=rng, task="prior")
-    for episode in replay.episodes:
-        multitask.add(episode)
-    if args.benchmark_profile:
-        return profile_update(args, obs_shape, replay, multitask, rng, torch.device(devices[-1]))
-    parts = ["world_model", "actor_critic", "addressing", "batch_sampling"]
-    print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "
-          + " ".join(f"{p:>14}" for p in parts), flush=True)
-    for device_name in devices:
-        device = torch.device(device_name)
-        for size in args.benchmark_sizes:
-            n, length = {"paper": (50, 50), "small": (16, 50)}[size]
-            reference = None
-            for method in args.benchmark_methods:
-                run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method)
-                agent = Agent(obs_shape, 6, run_args).to(device)
-                addressing = Addressing(obs_shape, 6, run_args, device) if method in ADDRESSED_METHODS else None
-                totals = dict.fromkeys(parts + ["total"], 0.0)
-                sampler = ChunkSampler(replay, n, length, rng, device, args.prefetch)
-                batches = sampler.batches(args.benchmark_updates + 1)
-                for i in range(args.benchmark_updates + 1):  # update 0 warms up (and refreshes D, once per C)
-                    if device.type == "cuda":
-                        torch.cuda.synchronize()
-                    t0 = time.perf_counter()
-                    x, waited = next(batches)
-                    out = update(agent, x, multitask, addressing, run_args, rng, device, "current", i)
-                    out["timings"]["batch_sampling"] += waited
-                    if device.type == "cuda":
-                        torch.cuda.synchronize()
-                    if i > 0:
-                        totals["total"] += (time.perf_counter() - t0) / args.benchmark_updates
-                        for k in parts:
-                            totals[k] += out["timings"].get(k, 0.0) / args.benchmark_updates
-                reference = reference or totals["total"]
-                sampler.close()
-                print(f"{device_name:<6} {size:<6} {n:>3} {length:>3} {method:<8} {totals['total']:>9.3f} "
-                      f"{totals['total'] / reference:>9.2f}x " + " ".join(f"{totals[p]:>14.3f}" for p in parts),
-                      flush=True)
-        if args.benchmark_collection:
-            benchmark_collection(args, device)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1818,6 +1695,15 @@ def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressin
     return metrics
 
 
+def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: float) -> str:
+    """The plain-log line inside a round of updates: how far the round is, its speed and the time it has left."""
+    from tqdm import tqdm
+
+    rate = done / max(seconds, 1e-9)  # done >= 1 here
+    return (f"step {env_steps}/{total_steps} | update {done}/{todo} of this round | {rate:.3g} updates/s | "
+            f"round ETA {tqdm.format_interval((todo - done) / rate)}")
+
+
 def save_addressing(path: str, addressing: Addressing, args: Args):
     write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
                             "args": checked_args(args)})
@@ -1868,9 +1754,13 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
 
     from tqdm import tqdm
 
+    # a bar over env steps and, inside each round of C updates, one over its updates (updates/s, the round's ETA);
+    # without a terminal on stderr (nohup, CI, sweeps) or with --plain-log: plain lines, at least one per
+    # --log-interval-seconds inside a round and one per collected episode(s)
     progress = tqdm(total=args.total_steps, initial=min(env_steps, args.total_steps), unit="step", dynamic_ncols=True,
-                    disable=None)
+                    disable=True if args.plain_log else None)
     start_time, start_steps = time.time(), env_steps
+    last_line = time.time()  # when the last plain line was printed
     updates_per_round = args.updates_per_episode * args.num_envs  # C updates per collected episode
     try:
         while env_steps < args.total_steps:
@@ -1879,7 +1769,10 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 if state.get("round_at") != len(replay):
                     state["round_at"], state["round_left"] = len(replay), updates_per_round
                 rows, sums, timings, picks, done = [], {}, {}, [], 0
-                for x, waited in sampler.batches(state["round_left"]):
+                round_start, todo = time.time(), state["round_left"]
+                round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,
+                                 disable=progress.disable)
+                for x, waited in sampler.batches(todo):
                     if STOP["signal"]:  # finish the current update, not the round
                         break
                     out = update(agent, x, multitask, addressing, args, rng, device, env.task_name, state["updates"])
@@ -1890,6 +1783,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                         timings[k] = timings.get(k, 0.0) + v
                     if out["picks"] is not None:
                         picks.append(out["picks"])
+                    round_bar.update()  # no host sync: tqdm only reads the clock
+                    if progress.disable and time.time() - last_line >= args.log_interval_seconds:
+                        print(round_line(env_steps, args.total_steps, done, todo, time.time() - round_start),
+                              flush=True)
+                        last_line = time.time()
+                round_bar.close()
                 for row in rows:
                     for k, v in row.items():
                         sums[k] = sums.get(k, 0.0) + v
@@ -1978,6 +1877,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             if progress.disable:  # no terminal (nohup, CI): one plain line per round instead of the bar
                 print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "
                       f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
+                last_line = time.time()
     finally:
         progress.close()
         sampler.close()
@@ -1993,8 +1893,6 @@ def main(args: Args, given: frozenset = frozenset()):
     checked before the run folder is created or touched."""
     args = resolve_defaults(args)
     check_args(args)
-    if args.benchmark:
-        return benchmark(args)
     args, run_path = resolve_run(args, set(given))
     device = resolve_device(args.device)
     seed_everything(args.seed)

@@ -31,6 +31,7 @@ def read_metrics(run_path):
         return [json.loads(line) for line in f]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("obs_type", ["pixels", "state"])
 def test_tiny_run_writes_a_complete_run_folder(tmp_path, obs_type):
     flags = ["--env-id", "dmc/walker-walk", "--obs-type", obs_type, "--run-dir", str(tmp_path), *TINY,
@@ -66,6 +67,7 @@ def _comparable(run_path):
             for row in read_metrics(run_path)]
 
 
+@pytest.mark.slow
 def test_same_seed_same_run_different_seed_different_run(tmp_path):
     flags = ["--env-id", "dmc/cartpole-swingup", "--obs-type", "state", *TINY, "--total-steps", "300"]
     for name, seed in [("a", 3), ("b", 3), ("c", 4)]:
@@ -75,6 +77,7 @@ def test_same_seed_same_run_different_seed_different_run(tmp_path):
     assert a != c
 
 
+@pytest.mark.slow
 def test_resume_after_sigkill(tmp_path):
     flags = ["--env-id", "dmc/cartpole-balance", "--obs-type", "state", "--run-dir", str(tmp_path), *TINY,
              "--total-steps", "100000"]
@@ -131,6 +134,7 @@ def test_bad_input_is_one_line_naming_the_flag(tmp_path, flags, flag_named):
     assert not os.listdir(tmp_path)  # nothing written for a refused run
 
 
+@pytest.mark.slow
 def test_unwritable_run_dir(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
@@ -139,6 +143,7 @@ def test_unwritable_run_dir(tmp_path):
     assert proc.returncode != 0 and len(lines) == 1 and "--run-dir" in lines[0], proc.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["bluebox", "bluecone"])
 def test_tiny_run_on_the_kitchen(tmp_path, task):
     no_horizon = [f for i, f in enumerate(TINY) if "--horizon" not in TINY[max(i - 1, 0):i + 1]]
@@ -154,18 +159,42 @@ def test_tiny_run_on_the_kitchen(tmp_path, task):
     assert {"losses/world_model", "charts/success_rate", "eval/success_rate"} <= keys
 
 
+def bench(*flags, timeout=300):
+    return run_script(os.path.join("benchmarks", "bench_update.py"), *flags, timeout=timeout)
+
+
+@pytest.mark.slow
 def test_benchmark_command_prints_every_method():
-    proc = run("--benchmark", "--obs-type", "state", "--benchmark-updates", "1", "--deter-size", "8",
-               "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8",
-               "--horizon", "3", "--benchmark-methods", "dreamer", "uniform", "rrama", "vrama", "rbrama",
-               "--num-envs", "2")
-    header, *lines = proc.stdout.splitlines()
+    proc = bench("--obs-type", "state", "--updates", "1", "--deter-size", "8", "--stoch-size", "4",
+                 "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8", "--horizon", "3",
+                 "--methods", "dreamer", "uniform", "rrama", "vrama", "rbrama", "--num-envs", "2")
+    header, columns, *lines = proc.stdout.splitlines()
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])  # --device auto times both when there is CUDA
     assert "machine: " in header and "precision fp32" in header
-    collection = [line for line in lines if " collection " in line]
-    rows = [line.split() for line in lines[1:] if " collection " not in line]
-    assert [(r[0], r[1], r[4]) for r in rows] == [(d, size, m) for d in ["cpu"] + (["cuda"] if len(rows) > 10 else [])
-                                                  for size in ("paper", "small")
+    assert [d for d in ("cpu", "cuda") if f"| {d} bf16: " in header] == devices
+    assert columns.split()[:6] == ["device", "size", "n", "L", "method", "s/update"]
+    collection = [line.split() for line in lines if " collection " in line]
+    rows = [line.split() for line in lines if " collection " not in line]
+    assert [(r[0], r[1], r[4]) for r in rows] == [(d, size, m) for d in devices for size in ("paper", "small")
                                                   for m in ("dreamer", "uniform", "rrama", "vrama", "rbrama")]
-    assert [line.split("env(s)")[0].split()[-1] for line in collection[:2]] == ["1", "2"]  # 1 env, then 2
-    assert all(float(line.split(":")[-1].split()[0]) > 0 for line in collection)
+    assert [(c[0], c[-5]) for c in collection] == [(d, n) for d in devices for n in ("1", "2")]  # 1 env, then 2
+    assert all(float(c[-3]) > 0 for c in collection)
     assert all(float(r[5]) > 0 for r in rows)
+
+
+@pytest.mark.slow
+def test_benchmark_times_the_metaworld_script():
+    proc = bench("--script", "rama_metaworld", "--obs-type", "state", "--updates", "1", "--sizes", "small",
+                 "--methods", "dreamer", "rrama", "--no-collection", "--device", "cpu", "--deter-size", "8",
+                 "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8",
+                 "--horizon", "3")
+    rows = [line.split() for line in proc.stdout.splitlines()[2:]]
+    assert [(r[0], r[1], r[4]) for r in rows] == [("cpu", "small", "dreamer"), ("cpu", "small", "rrama")]
+    assert "collection" not in proc.stdout
+
+
+@pytest.mark.slow
+def test_benchmark_refuses_a_bad_flag_in_one_line():
+    proc = run_script(os.path.join("benchmarks", "bench_update.py"), "--updates", "0", "--obs-type", "state",
+                      check=False, timeout=60)
+    assert proc.returncode == 2 and proc.stderr.strip() == "error: --updates must be > 0 (got 0)", proc.stderr

@@ -103,6 +103,7 @@ def _rollout(env, seed, steps=10):
     return np.stack(frames), np.array(rewards)
 
 
+@pytest.mark.slow
 def test_reproducible_under_seed(push):
     frames, rewards = _rollout(push, seed=5)
     other = MetaWorldEnv("metaworld/push", seed=0)  # a second env in the process: its own renderer
@@ -139,6 +140,7 @@ def test_truncation_at_500_env_steps():
     env.close()
 
 
+@pytest.mark.slow
 def test_expert_succeeds_with_env_step_rewards_in_0_10():
     env = MetaWorldEnv("metaworld/push", seed=0, obs_type="state", action_repeat=1)
     successes, rewards = [], []
@@ -173,6 +175,7 @@ def expert_prior(tmp_path_factory):
     return run_path
 
 
+@pytest.mark.slow
 def test_expert_prior_episodes_keep_their_task_vector(expert_prior):
     paths = sorted(glob.glob(os.path.join(expert_prior, "episodes", "*.npz")))
     assert len(paths) == 2
@@ -184,6 +187,7 @@ def test_expert_prior_episodes_keep_their_task_vector(expert_prior):
             assert ep["success"].dtype == bool and float(ep["return"]) > 100  # the expert pushes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["dreamer", "uniform", "vrama", "rrama", "rbrama"])
 def test_every_method_runs_on_new_vectors(tmp_path, expert_prior, method):
     prior = [] if method == "dreamer" else ["--prior-dirs", expert_prior]
@@ -200,12 +204,14 @@ def test_every_method_runs_on_new_vectors(tmp_path, expert_prior, method):
         assert any(np.allclose(ep["task_vector"], v) for v in new)
 
 
+@pytest.mark.slow
 def test_bad_env_id_is_one_line(tmp_path):
     proc = run("--env-id", "metaworld/fly", "--run-dir", str(tmp_path), check=False)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "--env-id" in lines[0], proc.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["push", "peg-insert-side", "sweep-into", "dial-turn", "drawer-close"])
 def test_table2_tasks_build_and_step(task):
     env = MetaWorldEnv(f"metaworld/{task}", seed=3)

@@ -311,6 +311,7 @@ def prior_run(tmp_path_factory):
     return glob.glob(os.path.join(root, "*"))[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["uniform", "vrama", "rrama", "rbrama"])
 def test_every_method_runs_with_prior_dirs(tmp_path, prior_run, method):
     run("--env-id", "dmc/walker-walk", "--method", method, "--prior-dirs", prior_run, "--run-dir", str(tmp_path),
@@ -327,6 +328,7 @@ def test_every_method_runs_with_prior_dirs(tmp_path, prior_run, method):
         assert glob.glob(os.path.join(run_path, "addressing", "q_*.png"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["vrama", "rrama"])
 def test_methods_run_without_prior_dirs(tmp_path, method):
     # the first task of a sequence: M holds only the current task's own experience
@@ -335,6 +337,7 @@ def test_methods_run_without_prior_dirs(tmp_path, method):
     assert "addressing/pick_fraction/walker-stand" in keys and "addressing/loss" in keys
 
 
+@pytest.mark.slow
 def test_two_task_sequence(tmp_path):
     run("--task-sequence", "walker-stand,walker-walk", "--method", "rrama", "--run-dir", str(tmp_path), *TINY,
         "--obs-type", "state")
@@ -347,6 +350,7 @@ def test_two_task_sequence(tmp_path):
     assert "addressing/pick_fraction/walker-stand" in metric_keys(second)
 
 
+@pytest.mark.slow
 def test_bad_prior_dirs_are_one_line_errors(tmp_path):
     proc = run("--method", "rrama", "--prior-dirs", str(tmp_path / "nope"), "--run-dir", str(tmp_path), *TINY,
                check=False)

@@ -17,6 +17,8 @@ import torch
 import rama_dreamer as rd
 from helpers import ROOT, TINY, run_script
 
+pytestmark = pytest.mark.slow  # every test here runs the script in a subprocess (4-40 s each)
+
 STATE = ["--env-id", "dmc/cartpole-balance", "--obs-type", "state", *TINY]  # 5-d observations, 1-d actions
 
 

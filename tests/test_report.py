@@ -45,6 +45,7 @@ def results(tmp_path):
     return exp
 
 
+@pytest.mark.slow
 def test_mean_se_and_iqm_by_hand():
     # [1, 2, 3, 10]: mean 16 / 4 = 4; deviations -3 -2 -1 6, squares sum 50, sample var 50 / 3,
     # s.e. = sqrt(50 / 3) / sqrt(4) = 4.0825 / 2 = 2.0412
@@ -66,6 +67,7 @@ def test_mean_se_and_iqm_by_hand():
     assert report.mean_se([7.0])[0] == 7.0 and report.mean_se([7.0])[1] != report.mean_se([7.0])[1]  # nan
 
 
+@pytest.mark.slow
 def test_report_tables_by_hand(results):
     run_script("report.py", str(results.parent), "--reps", "500", "--decimals", "3")  # results/ holds experiments
     text = (results / "report.md").read_text()
@@ -89,6 +91,7 @@ def test_report_tables_by_hand(results):
     assert (results / "report.md").read_text() == text
 
 
+@pytest.mark.slow
 def test_report_out_folder_and_errors(results, tmp_path):
     run_script("report.py", str(results), "--out", str(tmp_path / "docs"), "--reps", "100")
     assert sorted(os.listdir(tmp_path / "docs")) == ["curves.png", "report.md"]

@@ -20,7 +20,7 @@ def sections(script: str) -> dict:
 def test_shared_sections_are_identical():
     dmc, metaworld = sections("rama_dreamer.py"), sections("rama_metaworld.py")
     assert sorted(dmc) == sorted(metaworld) == list(range(1, 9))
-    # 4. storage and replay, 5. networks, 6. losses, 7. acting, logging, checkpoints, benchmark: word for word
+    # 4. storage and replay, 5. networks, 6. losses, 7. acting, logging, checkpoints: word for word
     for number in (4, 5, 6, 7):
         assert dmc[number] == metaworld[number], f"section {number} differs between the two scripts"
     # 8. the training loop: only Meta-World's expert collection (--collect-expert) is its own

@@ -140,6 +140,7 @@ def test_dreamer_v1_order_imagines_with_the_model_before_its_step():
                               rd.nn.utils.parameters_to_vector(agent.actor.parameters()))
 
 
+@pytest.mark.slow
 def test_compiled_rssm_gives_the_eager_losses(monkeypatch):
     import torch._inductor.config as inductor_config
 
@@ -186,6 +187,7 @@ def test_policy_acts_in_several_envs_at_once():
     assert policy.act(np.zeros((4, 3), np.float32), None, rng).shape == (4, 2)
 
 
+@pytest.mark.slow
 def test_parallel_envs_play_the_sequential_episodes():
     """AsyncVectorEnv over GymAdapters: with the same seeds and a deterministic policy, the same episodes as one
     env played episode after episode; a finished env ignores the extra steps."""
@@ -213,6 +215,7 @@ def test_parallel_envs_play_the_sequential_episodes():
         env.close()
 
 
+@pytest.mark.slow
 def test_script_with_fast_paths_runs(tmp_path):
     """bf16 where this CPU has it natively (else refused, see below), prefetch and two collecting subprocesses
     together, end to end (pixels, tiny sizes)."""
@@ -240,6 +243,7 @@ def test_bf16_is_refused_without_native_support(monkeypatch, flags, native):
             rd.check_precision("bf16", cpu)
 
 
+@pytest.mark.slow
 def test_bf16_refusal_is_one_line_on_this_machine(tmp_path):
     """The same check in a real run: on a CPU without native bf16, exit 2, one line, no run folder."""
     if rd.native_bf16(torch.device("cpu"))[0]:

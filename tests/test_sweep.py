@@ -92,6 +92,7 @@ def test_spec_errors_name_the_problem(tmp_path, text, message):
         sweep.load_spec(write_spec(tmp_path, text))
 
 
+@pytest.mark.slow
 def test_local_sweep_resumes_a_killed_run_then_skips_done_runs(tmp_path):
     spec = write_spec(tmp_path, TINY_SPEC)
     _, runs = sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / "results"))
@@ -154,6 +155,7 @@ def script_pid(folder: str):
     return None
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the script's pid in /proc")
 def test_ray_sweep_retries_a_killed_run_on_a_local_instance(tmp_path):
     # 6 episodes instead of 3, so the run is still going when it is killed

@@ -1,0 +1,210 @@
+"""Seconds per update of rama_dreamer.py (or rama_metaworld.py), every method, and collection speed.
+
+Times the training script's own functions, imported: a full update of Algorithm 2 (addressing + world model +
+actor + value) per method, at the paper's size (n=50 chunks of L=50 steps) and a small size (n=16, L=50), on
+synthetic episodes (no environment in the timing), on the CPU and on CUDA when present; then collection in env steps
+per second with the agent acting, in 1 env and in --num-envs envs. The first line names the date, the machine, torch,
+the thread count, the speed flags and what was found about native bf16 on each device timed.
+
+Every flag of the script is accepted too (--precision, --channels-last, --compile, --prefetch, --device, --obs-type,
+--image-size, --env-id, --num-envs, --address-imagine-starts, --vrama-select, network sizes, ...).
+
+Run (from the repository root):
+    python benchmarks/bench_update.py                                  # every method, both sizes, CPU (and CUDA)
+    python benchmarks/bench_update.py --device cuda --sizes paper --updates 5 --precision fp32
+    python benchmarks/bench_update.py --device cpu --sizes paper --updates 2 --no-collection
+    python benchmarks/bench_update.py --device cuda --profile          # the operators of one paper-size update
+    python benchmarks/bench_update.py --script rama_metaworld --env-id metaworld/push --num-envs 4
+"""
+import dataclasses
+import importlib
+import os
+import platform
+import sys
+import time
+from dataclasses import dataclass
+from typing import Literal, Tuple
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)  # the training scripts sit in the repository root
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import tyro  # noqa: E402
+
+SCRIPTS = ("rama_dreamer", "rama_metaworld")
+# the synthetic episodes' state vector and action sizes: walker-walk's (24, 6) and Meta-World's (39, 4)
+STATE_AND_ACTION = {"rama_dreamer": ((24,), 6), "rama_metaworld": ((39,), 4)}
+SIZES = {"paper": (50, 50), "small": (16, 50)}  # (n chunks, L steps)
+PARTS = ["world_model", "actor_critic", "addressing", "batch_sampling"]
+
+
+@dataclass
+class Options:
+    """What the benchmark times; the agent's flags that follow are the script's own."""
+    script: Literal["rama_dreamer", "rama_metaworld"] = "rama_dreamer"
+    """the script to time (the update is code the two share; collection runs the script's environment)"""
+    updates: int = 3
+    """timed updates per setting (after one warm-up update)"""
+    methods: Tuple[Literal["dreamer", "uniform", "rrama", "vrama", "rbrama"], ...] = (
+        "dreamer", "uniform", "rrama", "vrama", "rbrama")
+    """methods to time"""
+    sizes: Tuple[Literal["paper", "small"], ...] = ("paper", "small")
+    """sizes to time: paper (n=50, L=50), small (n=16, L=50)"""
+    profile: bool = False
+    """instead of the timings: profile one paper-size `dreamer` update and print the operators that take the time"""
+    collection: bool = True
+    """also time collection (env steps per second, 1 env and --num-envs envs, on --env-id)"""
+
+
+def script_flag(argv: list) -> str:
+    """--script, read before parsing, because the flags that follow are that script's Args (tyro refuses a bad one)."""
+    name = SCRIPTS[0]
+    for i, arg in enumerate(argv):
+        if arg == "--script" and i + 1 < len(argv):
+            name = argv[i + 1]
+        elif arg.startswith("--script="):
+            name = arg.partition("=")[2]
+    return name if name in SCRIPTS else SCRIPTS[0]
+
+
+def parse(argv: list):
+    """(script module, Options, the script's Args), from one command line: both sets of flags without prefixes."""
+    script = importlib.import_module(script_flag(argv))
+    Bench = dataclasses.make_dataclass("Bench", [
+        ("benchmark", tyro.conf.OmitArgPrefixes[Options], dataclasses.field(default_factory=Options)),
+        ("agent", tyro.conf.OmitArgPrefixes[script.Args], dataclasses.field(default_factory=script.Args))])
+    bench = tyro.cli(Bench, args=argv, description=__doc__.split("\n\n")[0])
+    return script, bench.benchmark, bench.agent
+
+
+def cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor()
+
+
+def time_collection(S, args, device: torch.device) -> None:
+    """Env steps per second of collection with the agent's policy acting (rendering + one encoder and RSSM step per
+    agent step), in one env and in --num-envs subprocesses."""
+    import functools
+
+    import gymnasium
+
+    args = dataclasses.replace(args, time_limit=min(args.time_limit, 400), total_steps=10**9)
+    env = S.make_env(args, args.env_id, args.seed)
+    policy = S.Policy(S.Agent(env.obs_shape, env.action_size, args).to(device), device)
+    rng = np.random.default_rng(args.seed)
+    for num_envs in sorted({1, args.num_envs}):
+        workers = None if num_envs == 1 else gymnasium.vector.AsyncVectorEnv(
+            [functools.partial(S.GymAdapter, args, args.env_id, args.seed + i) for i in range(num_envs)],
+            context="spawn", autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
+        for _ in range(2):  # the first round warms up (subprocess start, renderer, kernels); the second is timed
+            policy.reset(num_envs)
+            t0 = time.perf_counter()
+            if workers is None:
+                episodes = [S.run_episode(env, lambda o: policy.act(o[None], args.expl_noise, rng)[0], 0, "bench")[0]]
+            else:
+                episodes = S.run_parallel_episodes(workers, lambda o: policy.act(o, args.expl_noise, rng),
+                                                   list(range(num_envs)), "bench")
+            seconds = time.perf_counter() - t0
+        steps = sum(len(ep["reward"]) - 1 for ep in episodes) * args.action_repeat
+        print(f"{device.type:<6} collection {args.env_id} ({args.obs_type}), {num_envs} env(s): "
+              f"{steps / seconds:.0f} env steps/s", flush=True)
+        if workers is not None:
+            workers.close()
+    env.close()
+
+
+def profile_update(S, args, obs_shape, action_size: int, replay, multitask, rng, device: torch.device) -> None:
+    """Where the time of one paper-size Dreamer update goes, operator by operator (after a warm-up update)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    run_args = dataclasses.replace(args, batch_size=50, seq_len=50, method="dreamer")
+    agent = S.Agent(obs_shape, action_size, run_args).to(device)
+    batches = S.ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(2)
+    S.update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 0)
+    cuda = device.type == "cuda"
+    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
+        S.update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 1)
+        if cuda:
+            torch.cuda.synchronize()
+    print(prof.key_averages().table(sort_by="self_cuda_time_total" if cuda else "self_cpu_time_total", row_limit=25,
+                                    max_name_column_width=40), flush=True)
+
+
+def time_updates(S, options: Options, args, device: torch.device, obs_shape, action_size: int, replay, multitask,
+                 rng) -> None:
+    """One table row per size and method: mean seconds per update over options.updates updates after a warm-up."""
+    for size in options.sizes:
+        n, length = SIZES[size]
+        reference = None
+        for method in options.methods:
+            run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method)
+            agent = S.Agent(obs_shape, action_size, run_args).to(device)
+            addressing = S.Addressing(obs_shape, action_size, run_args, device) \
+                if method in S.ADDRESSED_METHODS else None
+            totals = dict.fromkeys(PARTS + ["total"], 0.0)
+            sampler = S.ChunkSampler(replay, n, length, rng, device, args.prefetch)
+            batches = sampler.batches(options.updates + 1)
+            for i in range(options.updates + 1):  # update 0 warms up (and refreshes D, once per C)
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                t0 = time.perf_counter()
+                x, waited = next(batches)
+                out = S.update(agent, x, multitask, addressing, run_args, rng, device, "current", i)
+                out["timings"]["batch_sampling"] += waited
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                if i > 0:
+                    totals["total"] += (time.perf_counter() - t0) / options.updates
+                    for k in PARTS:
+                        totals[k] += out["timings"].get(k, 0.0) / options.updates
+            reference = reference or totals["total"]
+            sampler.close()
+            print(f"{str(device):<6} {size:<6} {n:>3} {length:>3} {method:<8} {totals['total']:>9.3f} "
+                  f"{totals['total'] / reference:>9.2f}x " + " ".join(f"{totals[p]:>14.3f}" for p in PARTS),
+                  flush=True)
+
+
+def main(S, options: Options, args) -> None:
+    """Seconds per full update per method and size, on CPU and on CUDA when present (--device auto), or on --device."""
+    args = S.resolve_defaults(args)
+    S.check_args(args)
+    if options.updates < 1:
+        raise S.UsageError(f"--updates must be > 0 (got {options.updates})")
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
+    print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
+          f"{torch.__version__} | threads {torch.get_num_threads()}"
+          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "")
+          + f" | precision {args.precision} | channels-last {args.channels_last} | compile {args.compile}"
+          + "".join(f" | {d} bf16: {S.native_bf16(torch.device(d))[1]}" for d in devices), flush=True)
+    for device_name in devices:
+        S.check_precision(args.precision, torch.device(device_name))
+    state_shape, action_size = STATE_AND_ACTION[options.script]
+    obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else state_shape
+    rng = np.random.default_rng(args.seed)
+    replay = S.synthetic_replay(obs_shape, action_size, episodes=4, length=500, rng=rng, task="current")
+    multitask = S.synthetic_replay(obs_shape, action_size, episodes=4, length=500, rng=rng, task="prior")
+    for episode in replay.episodes:
+        multitask.add(episode)
+    if options.profile:
+        return profile_update(S, args, obs_shape, action_size, replay, multitask, rng, torch.device(devices[-1]))
+    print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "
+          + " ".join(f"{p:>14}" for p in PARTS), flush=True)
+    for device_name in devices:
+        device = torch.device(device_name)
+        time_updates(S, options, args, device, obs_shape, action_size, replay, multitask, rng)
+        if options.collection:
+            time_collection(S, args, device)
+
+
+if __name__ == "__main__":
+    script, options, args = parse(sys.argv[1:])
+    try:
+        main(script, options, args)
+    except script.UsageError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(e.code)
