@@ -250,6 +250,11 @@ def resolve_defaults(args: Args) -> Args:
                                free_nats=free_nats, obs_std=obs_std)
 
 
+def flag(name: str) -> str:
+    """An Args field as the command line spells it: address_lr -> --address-lr."""
+    return "--" + name.replace("_", "-")
+
+
 def check_args(args: Args) -> None:
     """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
     positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
@@ -260,10 +265,10 @@ def check_args(args: Args) -> None:
                 "num_envs"]
     for name in positive:
         if not getattr(args, name) > 0:  # `not >`: NaN is refused too
-            raise UsageError(f"--{name.replace('_', '-')} must be > 0 (got {getattr(args, name)})")
+            raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
     for name in ["eval_episodes", "address_imagine_starts", "log_interval_seconds"]:
         if not getattr(args, name) >= 0:  # NaN is refused too
-            raise UsageError(f"--{name.replace('_', '-')} must be >= 0 (got {getattr(args, name)})")
+            raise UsageError(f"{flag(name)} must be >= 0 (got {getattr(args, name)})")
     if args.obs_std is not None and args.obs_std <= 0:
         raise UsageError(f"--obs-std must be > 0 (got {args.obs_std})")
     if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
@@ -1687,10 +1692,6 @@ def resolve_run(args: Args, given: set):
     except (ValueError, TypeError, AttributeError, UsageError) as e:  # JSONDecodeError is a ValueError
         raise UsageError(f"{args_path}: {e}") from None
     return resumed, args.resume
-
-
-def flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
 
 
 def open_run(args: Args, run_path: str, rewrite_args: bool):
