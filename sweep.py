@@ -6,12 +6,14 @@
 
 The spec (see sweeps/*.toml) names the script, the flags common to every run, and cells. A cell has its own flags,
 its methods and seeds, and optionally `prior`: a cell above (`prior`) or one method's runs (`balance/dreamer`, which
-may be this cell's own first method). Those runs, with the same seed, become --prior-dirs. A run starts only after
+may be this cell's own first method). Those runs, with the same seed, become --prior-dirs; a prior named by one
+run only (a cell with one seed) serves every seed. A run starts only after
 its priors have finished. Runs whose method is `dreamer` take no prior, so they do not wait.
 
 Every run gets a fixed folder, runs/<experiment>/<cell>__<method>__s<seed>/, passed to the script as --run-dir (the
 script makes its own timestamped run folder inside). Rerunning the same sweep is therefore safe:
-- a run whose folder holds `DONE` is skipped;
+- a run whose folder holds `DONE` is skipped, and so is one whose results/ are there (committed from another
+  machine), unless a run still to do needs it as its prior: then it runs again here, for its episodes;
 - a run that has started but is not done (killed, crashed, node lost) continues with --resume;
 - the rest start fresh.
 After a run finishes, its args.json and metrics.jsonl are copied to results/<experiment>/<run>/ (small, meant to be
@@ -31,6 +33,7 @@ Ray (`--ray-address auto` for a running cluster, `--ray-address local` to start 
 import argparse
 import concurrent.futures
 import dataclasses
+import fnmatch
 import glob
 import json
 import os
@@ -130,8 +133,10 @@ def load_spec(path: str, runs_dir: str = "runs", results_dir: str = "results"):
                 else:
                     for prior in priors:  # `cell` (all its methods) or `cell/method`, of runs expanded above
                         start = prior.replace("/", "__") + "__"
-                        same_seed = [r.name for r in runs.values() if r.name.startswith(start)
-                                     and r.name.endswith(f"__s{seed}")]
+                        named = [r.name for r in runs.values() if r.name.startswith(start)]
+                        same_seed = [n for n in named if n.endswith(f"__s{seed}")]
+                        if not same_seed and len(named) == 1:  # a prior made once (one seed) serves every seed
+                            same_seed = named
                         if not same_seed:  # only runs above can be priors, so dependencies never form a cycle
                             raise SpecError(f"{where}: prior {prior!r} names no run with seed {seed} above {name}")
                         deps += same_seed
@@ -152,7 +157,33 @@ def run_folder(folder: str):
 
 
 def is_done(run: Run) -> bool:
-    return os.path.exists(os.path.join(run.folder, "DONE"))
+    """Done here (DONE in its folder), or on another machine whose results were committed (results/ has args.json)."""
+    return os.path.exists(os.path.join(run.folder, "DONE")) or os.path.exists(os.path.join(run.results, "args.json"))
+
+
+def to_run(runs: list) -> list:
+    """The runs not done, plus the done priors they need whose run folders are not here (done on another machine,
+    with only their results committed): those run again, since their episodes are the prior data."""
+    by_name = {r.name: r for r in runs}
+    todo = {r.name for r in runs if not is_done(r)}
+    while True:
+        missing = {d for n in todo for d in by_name[n].deps if d not in todo and not run_folder(by_name[d].folder)}
+        if not missing:
+            return [r for r in runs if r.name in todo]
+        todo |= missing
+
+
+def select(runs: list, patterns: list) -> list:
+    """The runs whose names match a pattern, and (recursively) the priors they depend on, in spec order."""
+    by_name = {r.name: r for r in runs}
+    chosen = {r.name for r in runs if any(fnmatch.fnmatchcase(r.name, p) for p in patterns)}
+    stack = list(chosen)
+    while stack:
+        for dep in by_name[stack.pop()].deps:
+            if dep not in chosen:
+                chosen.add(dep)
+                stack.append(dep)
+    return [r for r in runs if r.name in chosen]
 
 
 def command(run: Run, python: str = None) -> list:
@@ -296,6 +327,9 @@ def main():
     parser.add_argument("--runs-dir", default="runs", help="runs go to <runs-dir>/<experiment>/<run>/")
     parser.add_argument("--results-dir", default="results", help="results go to <results-dir>/<experiment>/<run>/")
     parser.add_argument("--dry-run", action="store_true", help="print each run's state and command, run nothing")
+    parser.add_argument("--only", nargs="+", default=None, metavar="PATTERN",
+                        help="run only the runs whose names match one of these patterns (fnmatch, e.g. '*__dreamer__*')"
+                             ", and the priors they need")
     args = parser.parse_args()
     if args.ray_address:  # Ray workers may start in another folder: give them absolute paths (shared filesystem)
         args.runs_dir, args.results_dir = os.path.abspath(args.runs_dir), os.path.abspath(args.results_dir)
@@ -304,7 +338,12 @@ def main():
     except SpecError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
-    todo = [r for r in runs if not is_done(r)]
+    if args.only:
+        runs = select(runs, args.only)
+        if not runs:
+            print(f"error: --only {' '.join(args.only)}: no run of {args.spec} matches", file=sys.stderr)
+            sys.exit(2)
+    todo = to_run(runs)
     for run in runs:  # results/ deleted or not yet committed here: copy them again from the done runs
         if run not in todo and not os.path.exists(os.path.join(run.results, "args.json")) and not args.dry_run:
             save_results(run)

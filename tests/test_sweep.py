@@ -78,6 +78,51 @@ method_flags.rrama_nosg = "--method rrama --address-stop-grad-x False"
                                             "--device", "cpu"]
 
 
+def test_a_prior_made_once_serves_every_seed(tmp_path):
+    spec = write_spec(tmp_path, """
+seeds = [1, 2]
+[cells.prior]
+seeds = [0]
+[cells.twice]
+seeds = [0, 5]
+[cells.task]
+methods = ["uniform"]
+prior = "prior"
+[cells.task2]
+methods = ["uniform"]
+prior = "twice"
+seeds = [1]
+""")
+    with pytest.raises(sweep.SpecError, match=r"prior 'twice' names no run with seed 1"):  # two runs: ambiguous
+        sweep.load_spec(spec)
+    write_spec(tmp_path, open(spec).read().split("[cells.task2]")[0])
+    by_name = {r.name: r for r in sweep.load_spec(spec)[1]}
+    assert by_name["task__uniform__s1"].deps == ["prior__dreamer__s0"]
+    assert by_name["task__uniform__s2"].deps == ["prior__dreamer__s0"]
+
+
+def test_only_selects_runs_with_their_priors_and_committed_results_count_as_done(tmp_path):
+    spec = write_spec(tmp_path, """
+[cells.prior]
+[cells.task]
+methods = ["dreamer", "uniform", "rrama"]
+prior = "prior"
+""")
+    runs = sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / "results"))[1]
+    names = lambda rs: [r.name for r in rs]  # noqa: E731
+    assert names(sweep.select(runs, ["*__dreamer__*"])) == ["prior__dreamer__s1", "task__dreamer__s1"]
+    assert names(sweep.select(runs, ["task__rrama__*"])) == ["prior__dreamer__s1", "task__rrama__s1"]
+    assert names(sweep.to_run(runs)) == names(runs)
+    for run in runs[:3]:  # prior, task dreamer and uniform finished on another machine: only their results are here
+        os.makedirs(run.results)
+        open(os.path.join(run.results, "args.json"), "w").close()
+    # rrama still needs the prior's episodes, which are not here: the prior runs again; the others are done
+    assert names(sweep.to_run(runs)) == ["prior__dreamer__s1", "task__rrama__s1"]
+    os.makedirs(os.path.join(runs[0].folder, "dmc_run"))
+    open(os.path.join(runs[0].folder, "dmc_run", "args.json"), "w").close()  # the prior's run folder is here
+    assert names(sweep.to_run(runs)) == ["task__rrama__s1"]
+
+
 @pytest.mark.parametrize("text, message", [
     ('bad_key = 1\n[cells.a]\n', r"unknown keys \['bad_key'\]"),
     ('[cells.a]\nmethods = ["rrama"]\nprior = "b"\n[cells.b]\n', r"prior 'b' names no run with seed 1"),
