@@ -1,8 +1,8 @@
 """Tables and learning curves from results/: the paper's metric per task and method, by one command.
 
-    python report.py results/same_task_cartpole            # -> results/same_task_cartpole/report.md and curves.png
+    python report.py results/cartpole_tables            # -> results/cartpole_tables/report.md and curves.png
     python report.py results                               # every experiment under results/
-    python report.py results/same_task_cartpole --out docs # write them to docs/ instead
+    python report.py results/cartpole_tables --out docs # write them to docs/ instead
     python report.py --runs runs/<run> [runs/<run> ...] --out docs/curve.png   # the training and evaluation
                                                            # returns of single runs, in one figure
 
