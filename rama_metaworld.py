@@ -69,11 +69,9 @@ class Args:
     env_id: str = "metaworld/push"
     """the environment: `metaworld/<task>` (push, peg-insert-side, sweep-into, dial-turn, drawer-close, any v3 name)"""
     method: Literal["dreamer", "uniform", "vrama", "rrama", "rbrama"] = "dreamer"
-    """`dreamer` (no prior data), `uniform` (prior chunks mixed in uniformly: the paper's "No addressing"),
-    `vrama` (Eq. 1), `rrama` (Eq. 2), `rbrama` (Eq. 3)"""
+    """dreamer (no prior data), uniform (the paper's "No addressing"), vrama (Eq. 1), rrama (Eq. 2), rbrama (Eq. 3)"""
     task_sequence: Optional[str] = None
-    """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk,walker-run` (the agent
-    restarts per task; the addressing model and the multitask buffer carry over); overrides --env-id"""
+    """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk`; overrides --env-id"""
     seed: int = 1
     """seed of python, numpy, torch, the environment and every sampler"""
     device: str = "auto"
@@ -85,8 +83,7 @@ class Args:
     run_dir: str = "runs"
     """the folder that holds run folders"""
     resume: Optional[str] = None
-    """a run folder to continue with the args in its args.json; beside it only RESUME_FLAGS may be given
-    (--total-steps to extend the run, --device, the evaluation, logging and speed flags)"""
+    """a run folder to continue with the args in its args.json (beside it only RESUME_FLAGS may be given)"""
     track: bool = False
     """log to Weights & Biases as well (needs `pip install wandb`)"""
     wandb_project: str = "rama"
@@ -98,14 +95,13 @@ class Args:
     capture_video: bool = False
     """save GIFs of evaluation episodes and of open-loop world-model predictions under `videos/`"""
     plain_log: bool = False
-    """print plain lines instead of progress bars (always so without a terminal on stderr: nohup, CI, sweeps)"""
+    """print plain lines instead of progress bars (always so without a terminal on stderr)"""
     log_interval_seconds: float = 60.0
     """plain-log mode: a progress line at least this often inside a round of updates (0: after every update)"""
 
     # Speed (none of these changes what is learned, up to floating-point rounding)
     precision: Literal["fp32", "bf16"] = "fp32"
-    """`bf16`: conv stacks and the hidden layers of the MLPs run in bfloat16 autocast; the RSSM recurrence, the
-    output layers, the losses and the optimiser state stay fp32"""
+    """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
     channels_last: bool = True
     """keep conv weights and activations in channels-last memory layout (faster convs on CPU and GPU)"""
     compile: bool = False
@@ -145,13 +141,9 @@ class Args:
     mlp_units: int = 400
     """units of the reward, value and actor MLPs (and of the state encoder/decoder)"""
     free_nats: Optional[float] = None
-    """KL below this many nats is not penalised; None = 3 for pixels (the paper), 0 for state observations (a
-    low-dimensional state's KL sits below 3 nats, where the clamp would leave the prior untrained and imagination
-    blind to actions)"""
+    """KL below this many nats is not penalised; None = 3 for pixels (the paper), 0 for state (see README)"""
     obs_std: Optional[float] = None
-    """standard deviation of the decoder's Gaussian p(o|s); None = 1 for pixels (the paper), 0.1 for state
-    observations (a handful of unit-variance dims pays too little for its KL: at 1 the posterior carried the cart
-    position of cartpole to within about its own spread, and the agent could not see it drift)"""
+    """std of the decoder's Gaussian p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)"""
     kl_scale: float = 1.0
     """weight of the KL term"""
     model_lr: float = 6e-4
@@ -215,19 +207,15 @@ class Args:
     address_cnn_depth: int = 16
     """channel multiplier of the addressing model's own conv encoder"""
     address_imagine_starts: int = 0
-    """VRAMa: imagine from this many of the n·L posteriors of the selected chunks, drawn at random (an unbiased
-    estimate of Eq. 1's mean over all of them); 0 = all of them, as the paper does"""
+    """VRAMa: imagine from this many random posteriors of the selected chunks; 0 = all (the paper)"""
     vrama_select: Literal["embeddings", "frames"] = "embeddings"
-    """VRAMa: what the straight-through one-hots multiply. "embeddings": the world model's encodings of the m
-    multitask chunks (encoded once, without gradient); "frames": the frames, which then pass the encoder with a
-    backward pass into them. The forward pass is the same; the straight-through gradient differs (see README)"""
+    """VRAMa: what the straight-through one-hots multiply: the chunks' encodings or their frames (see README)"""
     vrama_reduction: Literal["mean", "sum"] = "mean"
-    """VRAMa: "mean" = γ^t-weighted mean of V_λ over steps and starts (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
+    """VRAMa: "mean" = γ^t-weighted mean of V_λ (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
     address_layer_norm: bool = False
-    """layer-normalise f_φ's per-step input layer (not in the paper; unnormalised states can saturate the GRU and
-    collapse q to uniform, see the README)"""
+    """layer-normalise f_φ's per-step input layer (not in the paper; see README)"""
     address_reward_input: bool = False
-    """feed f_φ the stored reward of each step too (not in the paper: f_φ reads actions and observations only)"""
+    """feed f_φ the stored reward of each step too (not in the paper)"""
     address_stop_grad_x: Optional[bool] = None
     """stop the gradient through f(x); None = on for rrama and rbrama, off for vrama"""
     address_standardize: bool = True
