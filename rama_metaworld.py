@@ -11,8 +11,9 @@ rama_dreamer.py: `diff rama_dreamer.py rama_metaworld.py` shows only the environ
 Contents (each section sits under a `# ----` banner):
     1. imports              2. Args (every knob a flag)       3. environment (Meta-World v3, scripted experts)
     4. episode storage, replay and the multitask buffer       5. networks (encoder, decoder, RSSM, heads, f_φ)
-    6. losses: λ-returns, KL with free nats, the Dreamer update, the addressing objectives (Eqs. 1-3)
-    7. acting, logging, checkpoints                           8. the training loop (Algorithms 1 and 2)
+    6. losses: λ-returns, KL with free nats, imagination, the Dreamer update
+    7. Algorithm 2: the addressing step (f_φ on Eqs. 1-3), then the batch mix (q̂, masks)
+    8. acting, logging, checkpoints                           9. the training loop (Algorithm 1)
 
 Run:
     python rama_metaworld.py --env-id metaworld/push --task-set train --exp-name prior     # prior experience
@@ -1175,6 +1176,9 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     return {"metrics": metrics, "timings": timings}
 
 
+# ----------------------------------------------------------------------------------------------------------
+# 7. Algorithm 2: the addressing step (Eqs. 1-3), then the batch mix
+# ----------------------------------------------------------------------------------------------------------
 # ALGO LOGIC: addressing — q(j | x, M) = softmax_j(f(x)ᵀ f(M_j)) and the three objectives
 def address_logits(emb_x, emb_m, stop_grad_x: bool):
     """(n, U) current-task embeddings, (m, U) multitask embeddings -> (n, m) logits, a plain dot product."""
@@ -1314,44 +1318,76 @@ def mix_batch(x: dict, m_batch: dict) -> dict:
     return {k: torch.cat([x[k], m_batch[k]], 0) for k in x}
 
 
-def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str,
-                      chunk_rewards: Optional[np.ndarray] = None):
-    """Heat map of q̂(j | x_i): rows = current chunks, columns = candidates sorted by task then stored return.
-    Below it: each candidate's episode return and, if given, the chunk's own reward sum."""
-    import matplotlib
+def every(n: int, count: int) -> bool:
+    """True on every n-th count (count 0 included)."""
+    return count % n == 0
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    order = np.lexsort((returns, np.array(tasks)))
-    rows = 2 if chunk_rewards is None else 3
-    fig, axes = plt.subplots(rows, 1, figsize=(9, 3.5 + rows), sharex=True, height_ratios=[4] + [1] * (rows - 1))
-    ax, ax_ret = axes[0], axes[1]
-    # log-ratio to the uniform distribution: red = picked more often than uniform, blue = less
-    ratio = np.log10(np.maximum(probs[:, order] * probs.shape[1], 1e-12))
-    image = ax.imshow(ratio, aspect="auto", interpolation="nearest", cmap="RdBu_r", vmin=-2, vmax=2)
-    fig.colorbar(image, ax=list(axes), label="log10(q̂(j | x_i) / uniform)")
-    sorted_tasks = [tasks[i] for i in order]
-    for i in range(1, len(order)):  # task boundaries
-        if sorted_tasks[i] != sorted_tasks[i - 1]:
-            for a in axes:
-                a.axvline(i - 0.5, color="white" if a is ax else "gray", lw=1)
-    for task in dict.fromkeys(sorted_tasks):
-        idx = [i for i, t in enumerate(sorted_tasks) if t == task]
-        ax.text(np.mean(idx), -0.8, task, ha="center", va="bottom", fontsize=8)
-    ax.set_ylabel("current chunk x_i")
-    ax.set_title(title, pad=14)
-    ax_ret.plot(np.arange(len(order)), returns[order], lw=1)
-    ax_ret.set_ylabel("episode\nreturn", fontsize=8)
-    if chunk_rewards is not None:
-        axes[2].scatter(np.arange(len(order)), chunk_rewards[order], s=1)
-        axes[2].set_ylabel("chunk\nreward", fontsize=8)
-    axes[-1].set_xlabel("candidate chunk j (sorted by task, then stored episode return)")
-    return fig
+def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
+           device, task_name: str, updates_done: int) -> dict:
+    """One update of Algorithm 2 given n current-task chunks x_i ~ M_τ (torch, on device): (a) the addressing step,
+    (b) the agent's step on a batch that, with probability p, is β·n current chunks plus (1-β)·n chunks of M
+    picked by q̂ (or uniformly for `uniform`)."""
+    n, seq_len = args.batch_size, args.seq_len
+    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
+    use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
+
+    if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
+        t0 = time.perf_counter()
+        if addressing.D is None or every(args.address_refresh, updates_done):
+            addressing.refresh(multitask, seq_len, args.address_candidates, rng)
+            metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
+        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
+        metrics.update(addressing.train(agent, x, m_batch, args))
+        timings["addressing"] = time.perf_counter() - t0
+
+    batch, reward_mask, model_mask = x, None, None
+    keep = int(round(args.current_fraction * n))
+    if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
+        t0 = time.perf_counter()
+        borrow = n - keep
+        if addressing is None:
+            picks = multitask.sample_ids(borrow, seq_len, rng)
+        else:
+            j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i)
+            picks = (addressing.candidates[0][j], addressing.candidates[1][j])
+        batch = mix_batch({k: v[:keep] for k, v in x.items()}, to_torch(multitask.gather(*picks, seq_len), device))
+        tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
+        reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
+        if not args.wm_on_addressed:
+            model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
+        timings["batch_sampling"] += time.perf_counter() - t0
+    out = train_step(agent, batch, args, reward_mask, model_mask)
+    out["metrics"].update(metrics)
+    out["timings"].update(timings)
+    out["picks"] = picks
+    return out
+
+
+def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int,
+                  seq_len: int) -> dict:
+    """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
+    picked = [e for p in picks for e in p[0]]
+    metrics = {"addressing/mixed_batches": len(picks) / updates}
+    if not picked:
+        return metrics
+    tasks = [multitask.tasks[e] for e in picked]
+    for task in sorted(set(multitask.tasks)):
+        metrics[f"addressing/pick_fraction/{task}"] = tasks.count(task) / len(tasks)
+    metrics["addressing/picked_return"] = float(np.mean([multitask.returns[e] for e in picked]))
+    pool = addressing.candidates[0] if addressing is not None and addressing.candidates is not None \
+        else np.arange(len(multitask))
+    metrics["addressing/candidate_return"] = float(np.mean([multitask.returns[e] for e in pool]))
+    # the same at the level of chunks: the stored reward sum of each picked chunk against the candidates'
+    metrics["addressing/picked_chunk_reward"] = float(np.mean([multitask.chunk_rewards(*p, seq_len).mean()
+                                                               for p in picks if len(p[0])]))
+    if addressing is not None and addressing.candidates is not None:
+        metrics["addressing/candidate_chunk_reward"] = float(addressing.candidate_rewards.mean())
+    return metrics
 
 
 # ----------------------------------------------------------------------------------------------------------
-# 7. Acting, logging, checkpoints
+# 8. Acting, logging, checkpoints
 # ----------------------------------------------------------------------------------------------------------
 class Policy:
     """Acts online in N envs at once: keeps the RSSM posteriors of the current episodes and picks actions from them."""
@@ -1563,6 +1599,11 @@ def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
     write_checkpoint(path, payload)
 
 
+def save_addressing(path: str, addressing: Addressing, args: Args):
+    write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
+                            "args": checked_args(args)})
+
+
 def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
     load_state(path, agent, payload["agent"])
     for name, opt in agent.optimizers().items():
@@ -1650,7 +1691,7 @@ def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, ta
 
 
 # ----------------------------------------------------------------------------------------------------------
-# 8. Training loop
+# 9. Training loop
 # ----------------------------------------------------------------------------------------------------------
 def resolve_run(args: Args, given: set):
     """The run's args and folder, checked, nothing written: a new folder's name, or --resume's folder with its saved
@@ -1703,74 +1744,6 @@ def open_run(args: Args, run_path: str, rewrite_args: bool):
     return lock
 
 
-def every(n: int, count: int) -> bool:
-    """True on every n-th count (count 0 included)."""
-    return count % n == 0
-
-
-def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
-           device, task_name: str, updates_done: int) -> dict:
-    """One update of Algorithm 2 given n current-task chunks x_i ~ M_τ (torch, on device): (a) the addressing step,
-    (b) the agent's step on a batch that, with probability p, is β·n current chunks plus (1-β)·n chunks of M
-    picked by q̂ (or uniformly for `uniform`)."""
-    n, seq_len = args.batch_size, args.seq_len
-    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
-    use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
-
-    if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
-        t0 = time.perf_counter()
-        if addressing.D is None or every(args.address_refresh, updates_done):
-            addressing.refresh(multitask, seq_len, args.address_candidates, rng)
-            metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
-        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
-        metrics.update(addressing.train(agent, x, m_batch, args))
-        timings["addressing"] = time.perf_counter() - t0
-
-    batch, reward_mask, model_mask = x, None, None
-    keep = int(round(args.current_fraction * n))
-    if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
-        t0 = time.perf_counter()
-        borrow = n - keep
-        if addressing is None:
-            picks = multitask.sample_ids(borrow, seq_len, rng)
-        else:
-            j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i)
-            picks = (addressing.candidates[0][j], addressing.candidates[1][j])
-        batch = mix_batch({k: v[:keep] for k, v in x.items()}, to_torch(multitask.gather(*picks, seq_len), device))
-        tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
-        reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
-        if not args.wm_on_addressed:
-            model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
-        timings["batch_sampling"] += time.perf_counter() - t0
-    out = train_step(agent, batch, args, reward_mask, model_mask)
-    out["metrics"].update(metrics)
-    out["timings"].update(timings)
-    out["picks"] = picks
-    return out
-
-
-def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int,
-                  seq_len: int) -> dict:
-    """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
-    picked = [e for p in picks for e in p[0]]
-    metrics = {"addressing/mixed_batches": len(picks) / updates}
-    if not picked:
-        return metrics
-    tasks = [multitask.tasks[e] for e in picked]
-    for task in sorted(set(multitask.tasks)):
-        metrics[f"addressing/pick_fraction/{task}"] = tasks.count(task) / len(tasks)
-    metrics["addressing/picked_return"] = float(np.mean([multitask.returns[e] for e in picked]))
-    pool = addressing.candidates[0] if addressing is not None and addressing.candidates is not None \
-        else np.arange(len(multitask))
-    metrics["addressing/candidate_return"] = float(np.mean([multitask.returns[e] for e in pool]))
-    # the same at the level of chunks: the stored reward sum of each picked chunk against the candidates'
-    metrics["addressing/picked_chunk_reward"] = float(np.mean([multitask.chunk_rewards(*p, seq_len).mean()
-                                                               for p in picks if len(p[0])]))
-    if addressing is not None and addressing.candidates is not None:
-        metrics["addressing/candidate_chunk_reward"] = float(addressing.candidate_rewards.mean())
-    return metrics
-
-
 def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: float) -> str:
     """The plain-log line inside a round of updates: how far the round is, its speed and the time it has left."""
     from tqdm import tqdm
@@ -1778,11 +1751,6 @@ def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: 
     rate = done / max(seconds, 1e-9)  # done >= 1 here
     return (f"step {env_steps}/{total_steps} | update {done}/{todo} of this round | {rate:.3g} updates/s | "
             f"round ETA {tqdm.format_interval((todo - done) / rate)}")
-
-
-def save_addressing(path: str, addressing: Addressing, args: Args):
-    write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
-                            "args": checked_args(args)})
 
 
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
@@ -1895,7 +1863,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     write_gif(os.path.join(task_path, "videos", f"openloop_{env_steps:08d}.gif"),
                               open_loop_frames(agent.wm, batch))
                 if addressing is not None and addressing.D is not None and every(args.address_plot_every, len(replay)):
-                    import matplotlib.pyplot as plt
+                    from report import addressing_figure  # the plotting lives in report.py
 
                     x = to_torch(replay.sample(16, args.seq_len, rng), device)
                     cand_episodes = addressing.candidates[0]
@@ -1904,8 +1872,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                                             f"{args.method} on {env.task_name}, step {env_steps}",
                                             addressing.candidate_rewards)
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
-                    logger.writer.add_figure("addressing/probabilities", fig, env_steps)
-                    plt.close(fig)
+                    logger.writer.add_figure("addressing/probabilities", fig, env_steps)  # closes the figure
 
             # (b) evaluation without exploration noise, every eval_every environment steps
             if args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes:
