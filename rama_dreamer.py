@@ -349,7 +349,7 @@ def make_env_spec(env_id: str) -> dict:
     return {"suite": suite_name, "domain": domain, "task": task, "name": name}
 
 
-class DMCEnv:
+class DMCEnv(gymnasium.Env):
     """A DeepMind Control task with action repeat, a time limit and 64x64 RGB (or state) observations.
 
     Rendering goes through one `mujoco.Renderer` per env: dm_control's own `physics.render` can return black
@@ -361,20 +361,19 @@ class DMCEnv:
         from dm_control import suite
 
         spec = make_env_spec(env_id)
-        self.task_name = spec["name"]
         self._env = suite.load(spec["domain"], spec["task"], task_kwargs={"random": seed})
         self._obs_type, self._repeat = obs_type, action_repeat
         self._max_agent_steps = time_limit // action_repeat
         self._camera = camera if camera >= 0 else (2 if spec["domain"] == "quadruped" else 0)
         if self._camera >= self._env.physics.model.ncam:
             raise UsageError(f"--camera {camera}: {spec['domain']} has cameras 0-{self._env.physics.model.ncam - 1}")
-        action_spec = self._env.action_spec()
-        self.action_size = int(action_spec.shape[0])
-        self._renderer = mujoco.Renderer(self._env.physics.model.ptr, image_size, image_size)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, self._env.action_spec().shape, np.float32)
         if obs_type == "pixels":
-            self.obs_shape = (image_size, image_size, 3)
+            self.observation_space = gymnasium.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
         else:
-            self.obs_shape = (sum(int(np.prod(v.shape)) for v in self._env.observation_spec().values()),)
+            size = sum(int(np.prod(v.shape)) for v in self._env.observation_spec().values())
+            self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
+        self._renderer = mujoco.Renderer(self._env.physics.model.ptr, image_size, image_size)
 
     def _observe(self, time_step):
         if self._obs_type == "pixels":
@@ -386,14 +385,14 @@ class DMCEnv:
         self._renderer.update_scene(physics.data.ptr, camera=self._camera)
         return self._renderer.render().copy()  # (H, W, 3) uint8
 
-    def reset(self, seed=None):
+    def reset(self, *, seed=None, options=None):
         if seed is not None:  # reseed the task's own generator: episode k of a run is reproducible by itself
             self._env.task.random.seed(seed)
         self._steps = 0
-        return self._observe(self._env.reset())
+        return self._observe(self._env.reset()), {}
 
     def step(self, action):
-        """Returns (obs, reward, terminated, truncated, info); DMC tasks never terminate, they time out."""
+        """DMC tasks never terminate, they time out."""
         reward = 0.0
         for _ in range(self._repeat):
             time_step = self._env.step(action)
@@ -404,54 +403,39 @@ class DMCEnv:
         truncated = time_step.last() or self._steps >= self._max_agent_steps
         return self._observe(time_step), reward, False, truncated, {}
 
-    def extras(self) -> dict:
-        """What an episode file stores besides the trajectory (for analysis only, never an input)."""
-        return {}
-
     def close(self):
         self._renderer.close()
         self._env.physics.free()  # dm_control's env.close() frees nothing
 
 
-class KitchenEnvAdapter:
-    """The robot kitchen of kitchen_env.py (96x64 RGB) behind the same interface as DMCEnv, with action repeat."""
+class ActionRepeat(gymnasium.Wrapper):
+    """Each action repeated `repeat` env steps (the kitchen's own step is one): rewards add up, success at any
+    of them counts."""
 
-    def __init__(self, task, seed, obs_type="pixels", action_repeat=2, time_limit=500, active_joints=3):
-        from kitchen_env import KitchenEnv
-
-        self.task_name = task
-        self._env = KitchenEnv(task, active_joints=active_joints, obs_type=obs_type, max_steps=time_limit)
-        self._env.reset(seed=seed)  # seeds the env's generator; later resets reseed per episode
-        self._repeat = action_repeat
-        self.action_size = int(self._env.action_space.shape[0])
-        self.obs_shape = tuple(self._env.observation_space.shape)
-
-    def render(self):
-        return self._env.render()
-
-    def reset(self, seed=None):
-        return self._env.reset(seed=seed)[0]
+    def __init__(self, env: gymnasium.Env, repeat: int):
+        super().__init__(env)
+        self.repeat = repeat
 
     def step(self, action):
         reward, success = 0.0, False
-        for _ in range(self._repeat):
-            obs, r, terminated, truncated, info = self._env.step(action)
+        for _ in range(self.repeat):
+            obs, r, terminated, truncated, info = self.env.step(action)
             reward, success = reward + r, success or info["success"]
             if terminated or truncated:
                 break
         return obs, reward, terminated, truncated, {"success": success}
 
-    def extras(self) -> dict:
-        return {}
 
-    def close(self):
-        self._env.close()
+EPISODE_EXTRAS = ()  # the keys of reset's info an episode file stores as well (none for these envs)
 
 
-def make_env(args: Args, env_id: str, seed: int):
+def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
     if env_id.startswith("kitchen/"):
-        return KitchenEnvAdapter(env_id.split("/")[1], seed, args.obs_type, args.action_repeat, args.time_limit,
-                                 args.kitchen_joints)
+        from kitchen_env import KitchenEnv
+
+        env = KitchenEnv(env_id.split("/")[1], args.kitchen_joints, args.obs_type, max_steps=args.time_limit)
+        env.reset(seed=seed)  # seeds the env's generator; each episode's reset reseeds it
+        return ActionRepeat(env, args.action_repeat)
     return DMCEnv(env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit, args.camera)
 
 
@@ -1342,68 +1326,33 @@ def finish_episode(steps: dict, extras: dict, task: str, success: Optional[bool]
     return episode
 
 
-def run_episode(env, act, seed: int, task: str, record: bool = False):
-    """Play one episode; act(obs) -> action. Returns the episode dict and the rendered frames (record=True)."""
-    obs = env.reset(seed=seed)
-    steps = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
-    frames = [env.render()] if record else []
-    done, success = False, None  # success stays None for envs that do not report it
-    while not done:
-        action = act(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
-        for key, value in zip(("obs", "action", "reward", "terminal"), (obs, action, reward, terminated)):
-            steps[key].append(value)
-        if "success" in info:
-            success = bool(success) or bool(info["success"])
-        if record:
-            frames.append(env.render())
-        done = terminated or truncated
-        check_stop()  # a stopped run drops the episode in flight
-    return finish_episode(steps, env.extras(), task, success), frames
+def worker_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
+    """make_env, in a collecting subprocess too, where Ctrl-C and SIGTERM are the main process's to handle."""
+    if multiprocessing.parent_process() is not None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return make_env(args, env_id, seed)
 
 
-class GymAdapter(gymnasium.Env):
-    """One of this file's envs as a gymnasium.Env, so that gymnasium's AsyncVectorEnv can step it in a subprocess.
-
-    A vector env steps all its envs together: once an episode is over, further steps return its last observation
-    and change nothing (Meta-World raises on a step past its time limit)."""
-
-    def __init__(self, args: Args, env_id: str, seed: int):
-        if multiprocessing.parent_process() is not None:  # a worker: Ctrl-C and SIGTERM are the main process's
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        self.env = make_env(args, env_id, seed)
-        pixels = len(self.env.obs_shape) == 3
-        self.observation_space = gymnasium.spaces.Box(0 if pixels else -np.inf, 255 if pixels else np.inf,
-                                                      self.env.obs_shape, np.uint8 if pixels else np.float32)
-        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (self.env.action_size,), np.float32)
-        self._obs, self._done = None, True
-
-    def reset(self, seed=None, options=None):
-        self._obs, self._done = self.env.reset(seed=seed), False
-        return self._obs, {}
-
-    def step(self, action):
-        if self._done:
-            return self._obs, 0.0, False, True, {}
-        self._obs, reward, terminated, truncated, info = self.env.step(action)
-        self._done = terminated or truncated
-        return self._obs, reward, terminated, truncated, info
-
-    def extras(self) -> dict:
-        return self.env.extras()
-
-    def close(self):
-        self.env.close()
+def make_envs(args: Args, env_id: str, seed: int, num_envs: int) -> gymnasium.vector.VectorEnv:
+    """num_envs envs (seeds seed, seed + 1, ...) as one gymnasium vector env: in this process for one, in spawned
+    subprocesses (no fork of a process using torch) for more. An env whose episode ended before the others' is
+    reset on its next step (gymnasium's next-step autoreset); run_episodes ignores it until all have ended."""
+    makers = [functools.partial(worker_env, args, env_id, seed + i) for i in range(num_envs)]
+    if num_envs == 1:
+        return gymnasium.vector.SyncVectorEnv(makers)
+    return gymnasium.vector.AsyncVectorEnv(makers, context="spawn")
 
 
-def run_parallel_episodes(envs, act, seeds: list, task: str) -> list:
-    """One episode in each env of a gymnasium vector env of GymAdapters; act(obs (N, ...)) -> actions (N, A)."""
-    obs, _ = envs.reset(seed=list(seeds))
+def run_episodes(envs, act, seeds: list, task: str, record: bool = False):
+    """One episode in each env of a vector env; act(obs (N, ...)) -> actions (N, A). Returns the episode dicts
+    and, with record, the rendered frames of the first env's episode."""
+    obs, reset_info = envs.reset(seed=list(seeds))
     n = len(seeds)
     steps = [{"obs": [obs[i]], "action": [np.zeros(envs.single_action_space.shape, np.float32)], "reward": [0.0],
               "terminal": [False]} for i in range(n)]
-    done, success = np.zeros(n, bool), [None] * n
+    frames = [envs.call("render")[0]] if record else []
+    done, success = np.zeros(n, bool), [None] * n  # success stays None for envs that do not report it
     while not done.all():
         action = act(obs)  # (N, A)
         obs, reward, terminated, truncated, info = envs.step(action)
@@ -1412,9 +1361,12 @@ def run_parallel_episodes(envs, act, seeds: list, task: str) -> list:
                 steps[i][key].append(value[i])
             if "success" in info and info["_success"][i]:
                 success[i] = bool(success[i]) or bool(info["success"][i])
+        if record:
+            frames.append(envs.call("render")[0])
         done |= terminated | truncated
-        check_stop()
-    return [finish_episode(steps[i], extras, task, success[i]) for i, extras in enumerate(envs.call("extras"))]
+        check_stop()  # a stopped run drops the episodes in flight
+    extras = [{k: reset_info[k][i] for k in EPISODE_EXTRAS} for i in range(n)]
+    return [finish_episode(steps[i], extras[i], task, success[i]) for i in range(n)], frames
 
 
 def episode_metrics(prefix: str, episodes: list) -> dict:
@@ -1684,13 +1636,9 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
         return
 
-    env, eval_env = make_env(args, env_id, seed), make_env(args, env_id, seed + 10_000)
-    workers = None  # --num-envs > 1: collecting envs in subprocesses (spawned: no fork of a process using torch)
-    if args.num_envs > 1:
-        workers = gymnasium.vector.AsyncVectorEnv(
-            [functools.partial(GymAdapter, args, env_id, seed + i) for i in range(args.num_envs)], context="spawn",
-            autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
-    agent = Agent(env.obs_shape, env.action_size, args).to(device)
+    envs, eval_env = make_envs(args, env_id, seed, args.num_envs), make_envs(args, env_id, seed + 10_000, 1)
+    task, action_size = make_env_spec(env_id)["name"], envs.single_action_space.shape[0]
+    agent = Agent(envs.single_observation_space.shape, action_size, args).to(device)
     policy = Policy(agent, device)
     n_params = sum(p.numel() for p in agent.parameters())
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
@@ -1732,7 +1680,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 for x, waited in sampler.batches(todo):
                     if STOP["signal"]:  # finish the current update, not the round
                         break
-                    out = update(agent, x, multitask, addressing, args, rng, device, env.task_name, state["updates"])
+                    out = update(agent, x, multitask, addressing, args, rng, device, task, state["updates"])
                     out["timings"]["batch_sampling"] += waited
                     state["updates"], done = state["updates"] + 1, done + 1
                     rows.append({k: v.detach() for k, v in out["metrics"].items()})
@@ -1782,7 +1730,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     cand_episodes = addressing.candidates[0]
                     fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
                                             np.array([multitask.returns[e] for e in cand_episodes]),
-                                            f"{args.method} on {env.task_name}, step {env_steps}",
+                                            f"{args.method} on {task}, step {env_steps}",
                                             addressing.candidate_rewards)
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
                     logger.writer.add_figure("addressing/probabilities", fig, env_steps)  # closes the figure
@@ -1792,9 +1740,9 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 episodes = []
                 for i in range(args.eval_episodes):
                     policy.reset()
-                    episode, frames = run_episode(eval_env, lambda o: policy.act(o[None], None, rng)[0],
-                                                  seed=seed * 1_000_003 + 7919 * env_steps + i,
-                                                  task=env.task_name, record=args.capture_video and i == 0)
+                    (episode,), frames = run_episodes(eval_env, lambda o: policy.act(o, None, rng),
+                                                      [seed * 1_000_003 + 7919 * env_steps + i], task,
+                                                      record=args.capture_video and i == 0)
                     episodes.append(episode)
                     if frames:
                         write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
@@ -1810,14 +1758,11 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             first = len(replay)
             seeds = [seed * 1_000_003 + first + i for i in range(args.num_envs)]  # episode k's seed, N or not
             if len(replay) < args.prefill_episodes:
-                act = lambda o: rng.uniform(-1, 1, (len(o), env.action_size)).astype(np.float32)  # noqa: E731
+                act = lambda o: rng.uniform(-1, 1, (len(o), action_size)).astype(np.float32)  # noqa: E731
             else:
                 policy.reset(args.num_envs)
                 act = lambda o: policy.act(o, args.expl_noise, rng)  # noqa: E731
-            if workers is None:
-                episodes = [run_episode(env, lambda o: act(o[None])[0], seeds[0], env.task_name)[0]]
-            else:
-                episodes = run_parallel_episodes(workers, act, seeds, env.task_name)
+            episodes, _ = run_episodes(envs, act, seeds, task)
             for episode in episodes:
                 save_episode(episode_dir, len(replay), episode)
                 replay.add(episode)
@@ -1838,10 +1783,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         progress.close()
         sampler.close()
         logger.close()
-        env.close()
+        envs.close()
         eval_env.close()
-        if workers is not None:
-            workers.close()
 
 
 def main(args: Args, given: frozenset = frozenset()):
@@ -1855,7 +1798,7 @@ def main(args: Args, given: frozenset = frozenset()):
     rng = np.random.default_rng(args.seed)
     tasks = task_list(args)
     probe = make_env(args, tasks[0], args.seed)
-    obs_shape, action_size = probe.obs_shape, probe.action_size
+    obs_shape, action_size = probe.observation_space.shape, probe.action_space.shape[0]
     probe.close()
 
     # the multitask buffer M: prior episodes (the same K are drawn again on resume: same seed, same files)

@@ -400,7 +400,7 @@ def _task_vectors64(env_name, task_set, seed, num_tasks):
     return vecs[:num_tasks] if task_set == "train" else vecs[num_tasks:]
 
 
-class MetaWorldEnv:
+class MetaWorldEnv(gymnasium.Env):
     """A Meta-World v3 task with action repeat, a time limit and 64x64 RGB (or 39-d state) observations.
 
     Parametric variability (paper, Sec. 5): `num_tasks` task vectors (object/goal positions) of `task_set` are
@@ -434,8 +434,9 @@ class MetaWorldEnv:
         self._rng = np.random.default_rng(seed)
         self._obs_type, self._repeat = obs_type, action_repeat
         self._max_agent_steps = -(-time_limit // action_repeat)  # ceil: the env's own truncation ends the last one
-        self.action_size = 4
-        self.obs_shape = (image_size, image_size, 3) if obs_type == "pixels" else (39,)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32)
+        self.observation_space = gymnasium.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8) \
+            if obs_type == "pixels" else gymnasium.spaces.Box(-np.inf, np.inf, (39,), np.float32)
         self.task_index, self.task_vector, self.last_success = 0, self._vectors[0].astype(np.float32), False
         self._state, self._policy = None, None
 
@@ -466,14 +467,15 @@ class MetaWorldEnv:
         image = self._renderer.render()
         return np.ascontiguousarray(image[::-1] if self._flip else image)  # (H, W, 3) uint8
 
-    def reset(self, seed=None):
+    def reset(self, *, seed=None, options=None):
+        """The info holds the active task vector (EPISODE_EXTRAS: stored with the episode for analysis)."""
         rng = self._rng if seed is None else np.random.default_rng(seed)
         self.task_index = int(rng.integers(len(self._tasks)))
         self.task_vector = self._vectors[self.task_index].astype(np.float32)
         self._env.set_task(self._tasks[self.task_index])
         self._state, _ = self._env.reset()
         self._steps, self.last_success = 0, False
-        return self._observe()
+        return self._observe(), {"task_vector": self.task_vector, "task_index": self.task_index}
 
     def step(self, action):
         """Returns (obs, reward, terminated, truncated, info); Meta-World never terminates (not even on success)."""
@@ -488,10 +490,6 @@ class MetaWorldEnv:
         self._steps += 1
         truncated = truncated or self._steps >= self._max_agent_steps
         return self._observe(), reward, False, truncated, {"success": success}
-
-    def extras(self) -> dict:
-        """What an episode file stores besides the trajectory: the task vector (for analysis, never an input)."""
-        return {"task_vector": self.task_vector, "task_index": self.task_index}
 
     def close(self):
         """Free the GL context now: one left to the interpreter's exit prints EGL errors. Safe to call twice."""
@@ -519,7 +517,10 @@ def expert_action(env: MetaWorldEnv) -> np.ndarray:
     return np.clip(env._policy.get_action(state), -1.0, 1.0).astype(np.float32)
 
 
-def make_env(args: Args, env_id: str, seed: int):
+EPISODE_EXTRAS = ("task_vector", "task_index")  # the keys of reset's info an episode file stores as well
+
+
+def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
     # every env of a run (train and eval) draws its task vectors from the run's seed: the same set
     return MetaWorldEnv(env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit,
                         args.camera, args.task_set, args.num_tasks, args.render_quality, task_seed=args.seed)
@@ -529,16 +530,17 @@ def collect_expert_episodes(args: Args, run_path: str):
     """A fast prior buffer: episodes of Meta-World's scripted expert on the run's task set, then exit."""
     from tqdm import tqdm
 
-    env = make_env(args, args.env_id, args.seed)
+    envs = make_envs(args, args.env_id, args.seed, 1)
+    env = envs.envs[0]
     episode_dir = os.path.join(run_path, "episodes")
     os.makedirs(episode_dir, exist_ok=True)
     try:
         for index in tqdm(range(len(list_episode_files(episode_dir)), args.collect_expert), desc="expert episodes"):
-            episode, _ = run_episode(env, lambda o: expert_action(env), seed=args.seed * 1_000_003 + index,
-                                     task=env.task_name)
+            episode = run_episodes(envs, lambda o: expert_action(env)[None], [args.seed * 1_000_003 + index],
+                                   env.task_name)[0][0]
             save_episode(episode_dir, index, episode)
     finally:
-        env.close()
+        envs.close()
     print(f"wrote {args.collect_expert} expert episodes to {episode_dir}", flush=True)
 
 
@@ -1429,68 +1431,33 @@ def finish_episode(steps: dict, extras: dict, task: str, success: Optional[bool]
     return episode
 
 
-def run_episode(env, act, seed: int, task: str, record: bool = False):
-    """Play one episode; act(obs) -> action. Returns the episode dict and the rendered frames (record=True)."""
-    obs = env.reset(seed=seed)
-    steps = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
-    frames = [env.render()] if record else []
-    done, success = False, None  # success stays None for envs that do not report it
-    while not done:
-        action = act(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
-        for key, value in zip(("obs", "action", "reward", "terminal"), (obs, action, reward, terminated)):
-            steps[key].append(value)
-        if "success" in info:
-            success = bool(success) or bool(info["success"])
-        if record:
-            frames.append(env.render())
-        done = terminated or truncated
-        check_stop()  # a stopped run drops the episode in flight
-    return finish_episode(steps, env.extras(), task, success), frames
+def worker_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
+    """make_env, in a collecting subprocess too, where Ctrl-C and SIGTERM are the main process's to handle."""
+    if multiprocessing.parent_process() is not None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return make_env(args, env_id, seed)
 
 
-class GymAdapter(gymnasium.Env):
-    """One of this file's envs as a gymnasium.Env, so that gymnasium's AsyncVectorEnv can step it in a subprocess.
-
-    A vector env steps all its envs together: once an episode is over, further steps return its last observation
-    and change nothing (Meta-World raises on a step past its time limit)."""
-
-    def __init__(self, args: Args, env_id: str, seed: int):
-        if multiprocessing.parent_process() is not None:  # a worker: Ctrl-C and SIGTERM are the main process's
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        self.env = make_env(args, env_id, seed)
-        pixels = len(self.env.obs_shape) == 3
-        self.observation_space = gymnasium.spaces.Box(0 if pixels else -np.inf, 255 if pixels else np.inf,
-                                                      self.env.obs_shape, np.uint8 if pixels else np.float32)
-        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (self.env.action_size,), np.float32)
-        self._obs, self._done = None, True
-
-    def reset(self, seed=None, options=None):
-        self._obs, self._done = self.env.reset(seed=seed), False
-        return self._obs, {}
-
-    def step(self, action):
-        if self._done:
-            return self._obs, 0.0, False, True, {}
-        self._obs, reward, terminated, truncated, info = self.env.step(action)
-        self._done = terminated or truncated
-        return self._obs, reward, terminated, truncated, info
-
-    def extras(self) -> dict:
-        return self.env.extras()
-
-    def close(self):
-        self.env.close()
+def make_envs(args: Args, env_id: str, seed: int, num_envs: int) -> gymnasium.vector.VectorEnv:
+    """num_envs envs (seeds seed, seed + 1, ...) as one gymnasium vector env: in this process for one, in spawned
+    subprocesses (no fork of a process using torch) for more. An env whose episode ended before the others' is
+    reset on its next step (gymnasium's next-step autoreset); run_episodes ignores it until all have ended."""
+    makers = [functools.partial(worker_env, args, env_id, seed + i) for i in range(num_envs)]
+    if num_envs == 1:
+        return gymnasium.vector.SyncVectorEnv(makers)
+    return gymnasium.vector.AsyncVectorEnv(makers, context="spawn")
 
 
-def run_parallel_episodes(envs, act, seeds: list, task: str) -> list:
-    """One episode in each env of a gymnasium vector env of GymAdapters; act(obs (N, ...)) -> actions (N, A)."""
-    obs, _ = envs.reset(seed=list(seeds))
+def run_episodes(envs, act, seeds: list, task: str, record: bool = False):
+    """One episode in each env of a vector env; act(obs (N, ...)) -> actions (N, A). Returns the episode dicts
+    and, with record, the rendered frames of the first env's episode."""
+    obs, reset_info = envs.reset(seed=list(seeds))
     n = len(seeds)
     steps = [{"obs": [obs[i]], "action": [np.zeros(envs.single_action_space.shape, np.float32)], "reward": [0.0],
               "terminal": [False]} for i in range(n)]
-    done, success = np.zeros(n, bool), [None] * n
+    frames = [envs.call("render")[0]] if record else []
+    done, success = np.zeros(n, bool), [None] * n  # success stays None for envs that do not report it
     while not done.all():
         action = act(obs)  # (N, A)
         obs, reward, terminated, truncated, info = envs.step(action)
@@ -1499,9 +1466,12 @@ def run_parallel_episodes(envs, act, seeds: list, task: str) -> list:
                 steps[i][key].append(value[i])
             if "success" in info and info["_success"][i]:
                 success[i] = bool(success[i]) or bool(info["success"][i])
+        if record:
+            frames.append(envs.call("render")[0])
         done |= terminated | truncated
-        check_stop()
-    return [finish_episode(steps[i], extras, task, success[i]) for i, extras in enumerate(envs.call("extras"))]
+        check_stop()  # a stopped run drops the episodes in flight
+    extras = [{k: reset_info[k][i] for k in EPISODE_EXTRAS} for i in range(n)]
+    return [finish_episode(steps[i], extras[i], task, success[i]) for i in range(n)], frames
 
 
 def episode_metrics(prefix: str, episodes: list) -> dict:
@@ -1771,13 +1741,9 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
         return
 
-    env, eval_env = make_env(args, env_id, seed), make_env(args, env_id, seed + 10_000)
-    workers = None  # --num-envs > 1: collecting envs in subprocesses (spawned: no fork of a process using torch)
-    if args.num_envs > 1:
-        workers = gymnasium.vector.AsyncVectorEnv(
-            [functools.partial(GymAdapter, args, env_id, seed + i) for i in range(args.num_envs)], context="spawn",
-            autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
-    agent = Agent(env.obs_shape, env.action_size, args).to(device)
+    envs, eval_env = make_envs(args, env_id, seed, args.num_envs), make_envs(args, env_id, seed + 10_000, 1)
+    task, action_size = make_env_spec(env_id)["name"], envs.single_action_space.shape[0]
+    agent = Agent(envs.single_observation_space.shape, action_size, args).to(device)
     policy = Policy(agent, device)
     n_params = sum(p.numel() for p in agent.parameters())
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
@@ -1819,7 +1785,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 for x, waited in sampler.batches(todo):
                     if STOP["signal"]:  # finish the current update, not the round
                         break
-                    out = update(agent, x, multitask, addressing, args, rng, device, env.task_name, state["updates"])
+                    out = update(agent, x, multitask, addressing, args, rng, device, task, state["updates"])
                     out["timings"]["batch_sampling"] += waited
                     state["updates"], done = state["updates"] + 1, done + 1
                     rows.append({k: v.detach() for k, v in out["metrics"].items()})
@@ -1869,7 +1835,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     cand_episodes = addressing.candidates[0]
                     fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
                                             np.array([multitask.returns[e] for e in cand_episodes]),
-                                            f"{args.method} on {env.task_name}, step {env_steps}",
+                                            f"{args.method} on {task}, step {env_steps}",
                                             addressing.candidate_rewards)
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
                     logger.writer.add_figure("addressing/probabilities", fig, env_steps)  # closes the figure
@@ -1879,9 +1845,9 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 episodes = []
                 for i in range(args.eval_episodes):
                     policy.reset()
-                    episode, frames = run_episode(eval_env, lambda o: policy.act(o[None], None, rng)[0],
-                                                  seed=seed * 1_000_003 + 7919 * env_steps + i,
-                                                  task=env.task_name, record=args.capture_video and i == 0)
+                    (episode,), frames = run_episodes(eval_env, lambda o: policy.act(o, None, rng),
+                                                      [seed * 1_000_003 + 7919 * env_steps + i], task,
+                                                      record=args.capture_video and i == 0)
                     episodes.append(episode)
                     if frames:
                         write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
@@ -1897,14 +1863,11 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             first = len(replay)
             seeds = [seed * 1_000_003 + first + i for i in range(args.num_envs)]  # episode k's seed, N or not
             if len(replay) < args.prefill_episodes:
-                act = lambda o: rng.uniform(-1, 1, (len(o), env.action_size)).astype(np.float32)  # noqa: E731
+                act = lambda o: rng.uniform(-1, 1, (len(o), action_size)).astype(np.float32)  # noqa: E731
             else:
                 policy.reset(args.num_envs)
                 act = lambda o: policy.act(o, args.expl_noise, rng)  # noqa: E731
-            if workers is None:
-                episodes = [run_episode(env, lambda o: act(o[None])[0], seeds[0], env.task_name)[0]]
-            else:
-                episodes = run_parallel_episodes(workers, act, seeds, env.task_name)
+            episodes, _ = run_episodes(envs, act, seeds, task)
             for episode in episodes:
                 save_episode(episode_dir, len(replay), episode)
                 replay.add(episode)
@@ -1925,10 +1888,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         progress.close()
         sampler.close()
         logger.close()
-        env.close()
+        envs.close()
         eval_env.close()
-        if workers is not None:
-            workers.close()
 
 
 def main(args: Args, given: frozenset = frozenset()):
@@ -1942,7 +1903,7 @@ def main(args: Args, given: frozenset = frozenset()):
     rng = np.random.default_rng(args.seed)
     tasks = task_list(args)
     probe = make_env(args, tasks[0], args.seed)
-    obs_shape, action_size = probe.obs_shape, probe.action_size
+    obs_shape, action_size = probe.observation_space.shape, probe.action_space.shape[0]
     probe.close()
 
     # the multitask buffer M: prior episodes (the same K are drawn again on resume: same seed, same files)
