@@ -477,10 +477,8 @@ def list_episode_files(directory: str) -> list:
 
 
 class Replay:
-    """Episodes in memory (images as uint8) and uniform sampling of fixed-length chunks.
-
-    A chunk is addressed by (episode id, start); `gather` copies only the chunks, never whole episodes.
-    """
+    """Episodes in memory (images as uint8) and uniform sampling of fixed-length chunks, each addressed by (episode
+    id, start): `gather` copies only the chunks, never whole episodes."""
 
     def __init__(self):
         self.episodes, self.tasks, self.returns = [], [], []
@@ -614,9 +612,8 @@ def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_s
 
 
 def preprocess_obs(obs, device):
-    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5].
-
-    The permuted image is channels-last in memory already, which is the layout the conv stacks want."""
+    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]
+    (channels-last in memory already: the layout the conv stacks want)."""
     obs = torch.as_tensor(obs).to(device, non_blocking=True)  # uint8 crosses to the device: 4x less to copy
     if obs.dtype == torch.uint8:
         return obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5)
@@ -759,11 +756,8 @@ def set_speed_options(module: nn.Module, precision: str, channels_last: bool) ->
 
 
 class RSSM(nn.Module):
-    """Recurrent state-space model: deterministic GRU state h and Gaussian stochastic state z.
-
-    prior p(z_t | h_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t);  posterior q(z_t | h_t, e_t) with e_t the obs embedding.
-    A state is a dict of tensors: mean, std, stoch (B, S) and deter (B, D).
-    """
+    """Recurrent state-space model: prior p(z_t | h_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t); posterior
+    q(z_t | h_t, e_t), e_t the obs embedding. A state is a dict: mean, std, stoch (B, S) and deter (B, D)."""
 
     def __init__(self, action_size, embed_size, stoch_size=30, deter_size=200, hidden_size=200):
         super().__init__()
@@ -874,15 +868,9 @@ def tanh_normal(out, init_std, min_std, mean_scale):
 
 # ALGO LOGIC: addressing
 class AddressNet(nn.Module):
-    """f_φ: a chunk of trajectory -> an embedding (B, units).
-
-    Section 4.2: a GRU over "a sequence of actions concatenated with observation embeddings obtained from CNN"; the
-    last GRU output is the embedding. Its own encoder (not the world model's: the features that make a good
-    addressing are not those that make a good reconstruction) reads each frame; [frame features, action] pass an ELU
-    layer into the GRU. reward_input (not in the paper) appends the stored reward to each step's input. layer_norm
-    (not in the paper) normalises that layer before the ELU: unnormalised states can saturate the GRU, so that every
-    chunk gets the same embedding and q turns uniform.
-    """
+    """f_φ: a chunk -> an embedding (B, units), the last output of a GRU over [frame features, action] (Section 4.2).
+    Its own encoder: what makes a good addressing is not what makes a good reconstruction. layer_norm and
+    reward_input are not in the paper (--address-layer-norm keeps unnormalised states from saturating the GRU)."""
 
     def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int, layer_norm: bool = False,
                  reward_input: bool = False):
@@ -925,10 +913,7 @@ def gaussian_loglik(mean, target, event_dims: int, std: float = 1.0):
 def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: float, reward_mask=None,
                      model_mask=None, obs_std: float = 1.0):
     """ELBO of a batch of chunks: (KL with free nats) - log p(o|s) - log p(r|s). Returns loss, posts, metrics.
-
-    reward_mask (B,) drops the reward term on chunks whose reward belongs to another task; model_mask (B,) drops
-    chunks from the whole loss (--no-wm-on-addressed). Posteriors come back for every chunk.
-    """
+    reward_mask (B,) drops the reward term of other tasks' chunks; model_mask (B,) drops chunks from the whole loss."""
     embed = wm.encoder(batch["obs"])  # (B, T, E)
     post, prior = wm.rssm.observe(embed, batch["action"])
     feat = wm.rssm.feat(post)  # (B, T, F)
@@ -945,10 +930,7 @@ def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: fl
 
 
 def lambda_return(reward, value, pcont, bootstrap, lam: float):
-    """λ-returns over time (dim 0): R_t = r_t + γ_t [(1-λ) v_{t+1} + λ R_{t+1}], R_T = bootstrap.
-
-    reward, value, pcont: (H, N); bootstrap: (N,). Returns (H, N).
-    """
+    """λ-returns over time: R_t = r_t + γ_t [(1-λ) v_{t+1} + λ R_{t+1}], R_T = bootstrap: (H, N), (N,) -> (H, N)."""
     next_values = torch.cat([value[1:], bootstrap[None]], 0)
     inputs = reward + pcont * next_values * (1 - lam)
     returns, last = [], bootstrap
@@ -1115,16 +1097,9 @@ def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float,
                select: str = "embeddings", reduction: str = "mean"):
     """Eq. 1: imagine from the posteriors of the selected chunks M_j; the loss is −V_λ along the imagined steps.
 
-    reduction="mean": the γ^t-weighted mean over steps and starts, Dreamer's actor loss for the same E Σ_t V_λ
-    (Section 3 writes the actor's objective so too); "sum": −Σ_t V_λ(s_t) as Eq. 1 reads, averaged over starts. The
-    two differ by a factor (H-1) and the γ^t weights: Adam's steps barely see a constant factor, clipping does.
-
-    The agent stays fixed (frozen); the gradient reaches φ through the one-hots, the inputs of the world model.
-    select="embeddings" multiplies the one-hots with the encodings of the m chunks, "frames" with their frames:
-    the selected values are the same (a one-hot row picks one chunk); only the straight-through gradient differs.
-    starts > 0 imagines from that many of the n·L posteriors, drawn at random: an unbiased estimate of the mean
-    over all of them at a fraction of the cost (the posteriors themselves still filter every step of each chunk).
-    """
+    The agent is frozen: the gradient reaches φ through the one-hots. reduction "mean" (Dreamer's actor loss: the
+    γ^t-weighted mean) or "sum" (Eq. 1's Σ_t); select "embeddings" or "frames" (the same forward pass, another
+    straight-through gradient); starts > 0 imagines from that many random posteriors (an unbiased estimate)."""
     action = select_chunks(one_hot, m_batch["action"])  # (n, L, A)
     with Freeze(agent):
         if select == "frames":
@@ -1386,11 +1361,9 @@ class Logger:
         self.writer = SummaryWriter(run_path)
         self.jsonl = open(os.path.join(run_path, "metrics.jsonl"), "a")
         self.wandb = None
-        if args.track:
-            try:
-                import wandb
-            except ImportError:
-                raise UsageError("--track needs wandb: pip install wandb") from None
+        if args.track:  # check_args made sure wandb imports
+            import wandb
+
             self.wandb = wandb.init(project=args.wandb_project, config=vars(args), name=os.path.basename(run_path),
                                     dir=run_path, resume="allow")
 
