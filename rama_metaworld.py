@@ -365,6 +365,9 @@ def _sample_rand_vecs(task: str, seed: int, count: int) -> np.ndarray:
     Resetting an env with an unfrozen vector runs the task's own sampler, rejection loops included (e.g.
     pick-place redraws goals too close to the object), so every vector is a valid configuration. We use
     the env's private generator (`seeded_rand_vec`) instead of Meta-World's global np.random seeding.
+    Not the public `metaworld.ML1(name, seed)`: it draws test_tasks with seed + 1, so run s's new set is run
+    s + 1's train set (checked on 3.1.1: a prior collected with one seed would hold another seed's new tasks),
+    and it fixes 50 vectors per set (no --num-tasks).
     """
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
