@@ -216,7 +216,7 @@ def test_bad_env_id_is_one_line(tmp_path):
 def test_table2_tasks_build_and_step(task):
     env = MetaWorldEnv(f"metaworld/{task}", seed=3)
     try:
-        obs = env.reset(seed=1)
+        obs, _ = env.reset(seed=1)
         assert obs.shape == (64, 64, 3) and obs.std() > 5  # a real picture, not a blank frame
         obs, reward, terminated, truncated, info = env.step(expert_action(env))
         assert 0.0 <= reward <= 20.0 and not terminated and not truncated and "success" in info
