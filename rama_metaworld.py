@@ -11,8 +11,9 @@ rama_dreamer.py: `diff rama_dreamer.py rama_metaworld.py` shows only the environ
 Contents (each section sits under a `# ----` banner):
     1. imports              2. Args (every knob a flag)       3. environment (Meta-World v3, scripted experts)
     4. episode storage, replay and the multitask buffer       5. networks (encoder, decoder, RSSM, heads, f_φ)
-    6. losses: λ-returns, KL with free nats, the Dreamer update, the addressing objectives (Eqs. 1-3)
-    7. acting, logging, checkpoints                           8. the training loop (Algorithms 1 and 2)
+    6. losses: λ-returns, KL with free nats, imagination, the Dreamer update
+    7. Algorithm 2: the addressing step (f_φ on Eqs. 1-3), then the batch mix (q̂, masks)
+    8. acting, logging, checkpoints                           9. the training loop (Algorithm 1)
 
 Run:
     python rama_metaworld.py --env-id metaworld/push --task-set train --exp-name prior     # prior experience
@@ -69,11 +70,9 @@ class Args:
     env_id: str = "metaworld/push"
     """the environment: `metaworld/<task>` (push, peg-insert-side, sweep-into, dial-turn, drawer-close, any v3 name)"""
     method: Literal["dreamer", "uniform", "vrama", "rrama", "rbrama"] = "dreamer"
-    """`dreamer` (no prior data), `uniform` (prior chunks mixed in uniformly: the paper's "No addressing"),
-    `vrama` (Eq. 1), `rrama` (Eq. 2), `rbrama` (Eq. 3)"""
+    """dreamer (no prior data), uniform (the paper's "No addressing"), vrama (Eq. 1), rrama (Eq. 2), rbrama (Eq. 3)"""
     task_sequence: Optional[str] = None
-    """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk,walker-run` (the agent
-    restarts per task; the addressing model and the multitask buffer carry over); overrides --env-id"""
+    """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk`; overrides --env-id"""
     seed: int = 1
     """seed of python, numpy, torch, the environment and every sampler"""
     device: str = "auto"
@@ -85,8 +84,7 @@ class Args:
     run_dir: str = "runs"
     """the folder that holds run folders"""
     resume: Optional[str] = None
-    """a run folder to continue with the args in its args.json; beside it only RESUME_FLAGS may be given
-    (--total-steps to extend the run, --device, the evaluation, logging and speed flags)"""
+    """a run folder to continue with the args in its args.json (beside it only RESUME_FLAGS may be given)"""
     track: bool = False
     """log to Weights & Biases as well (needs `pip install wandb`)"""
     wandb_project: str = "rama"
@@ -98,14 +96,13 @@ class Args:
     capture_video: bool = False
     """save GIFs of evaluation episodes and of open-loop world-model predictions under `videos/`"""
     plain_log: bool = False
-    """print plain lines instead of progress bars (always so without a terminal on stderr: nohup, CI, sweeps)"""
+    """print plain lines instead of progress bars (always so without a terminal on stderr)"""
     log_interval_seconds: float = 60.0
     """plain-log mode: a progress line at least this often inside a round of updates (0: after every update)"""
 
     # Speed (none of these changes what is learned, up to floating-point rounding)
     precision: Literal["fp32", "bf16"] = "fp32"
-    """`bf16`: conv stacks and the hidden layers of the MLPs run in bfloat16 autocast; the RSSM recurrence, the
-    output layers, the losses and the optimiser state stay fp32"""
+    """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
     channels_last: bool = True
     """keep conv weights and activations in channels-last memory layout (faster convs on CPU and GPU)"""
     compile: bool = False
@@ -145,13 +142,9 @@ class Args:
     mlp_units: int = 400
     """units of the reward, value and actor MLPs (and of the state encoder/decoder)"""
     free_nats: Optional[float] = None
-    """KL below this many nats is not penalised; None = 3 for pixels (the paper), 0 for state observations (a
-    low-dimensional state's KL sits below 3 nats, where the clamp would leave the prior untrained and imagination
-    blind to actions)"""
+    """KL below this many nats is not penalised; None = 3 for pixels (the paper), 0 for state (see README)"""
     obs_std: Optional[float] = None
-    """standard deviation of the decoder's Gaussian p(o|s); None = 1 for pixels (the paper), 0.1 for state
-    observations (a handful of unit-variance dims pays too little for its KL: at 1 the posterior carried the cart
-    position of cartpole to within about its own spread, and the agent could not see it drift)"""
+    """std of the decoder's Gaussian p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)"""
     kl_scale: float = 1.0
     """weight of the KL term"""
     model_lr: float = 6e-4
@@ -215,19 +208,15 @@ class Args:
     address_cnn_depth: int = 16
     """channel multiplier of the addressing model's own conv encoder"""
     address_imagine_starts: int = 0
-    """VRAMa: imagine from this many of the n·L posteriors of the selected chunks, drawn at random (an unbiased
-    estimate of Eq. 1's mean over all of them); 0 = all of them, as the paper does"""
+    """VRAMa: imagine from this many random posteriors of the selected chunks; 0 = all (the paper)"""
     vrama_select: Literal["embeddings", "frames"] = "embeddings"
-    """VRAMa: what the straight-through one-hots multiply. "embeddings": the world model's encodings of the m
-    multitask chunks (encoded once, without gradient); "frames": the frames, which then pass the encoder with a
-    backward pass into them. The forward pass is the same; the straight-through gradient differs (see README)"""
+    """VRAMa: what the straight-through one-hots multiply: the chunks' encodings or their frames (see README)"""
     vrama_reduction: Literal["mean", "sum"] = "mean"
-    """VRAMa: "mean" = γ^t-weighted mean of V_λ over steps and starts (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
+    """VRAMa: "mean" = γ^t-weighted mean of V_λ (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
     address_layer_norm: bool = False
-    """layer-normalise f_φ's per-step input layer (not in the paper; unnormalised states can saturate the GRU and
-    collapse q to uniform, see the README)"""
+    """layer-normalise f_φ's per-step input layer (not in the paper; see README)"""
     address_reward_input: bool = False
-    """feed f_φ the stored reward of each step too (not in the paper: f_φ reads actions and observations only)"""
+    """feed f_φ the stored reward of each step too (not in the paper)"""
     address_stop_grad_x: Optional[bool] = None
     """stop the gradient through f(x); None = on for rrama and rbrama, off for vrama"""
     address_standardize: bool = True
@@ -376,6 +365,9 @@ def _sample_rand_vecs(task: str, seed: int, count: int) -> np.ndarray:
     Resetting an env with an unfrozen vector runs the task's own sampler, rejection loops included (e.g.
     pick-place redraws goals too close to the object), so every vector is a valid configuration. We use
     the env's private generator (`seeded_rand_vec`) instead of Meta-World's global np.random seeding.
+    Not the public `metaworld.ML1(name, seed)`: it draws test_tasks with seed + 1, so run s's new set is run
+    s + 1's train set (checked on 3.1.1: a prior collected with one seed would hold another seed's new tasks),
+    and it fixes 50 vectors per set (no --num-tasks).
     """
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
@@ -411,7 +403,7 @@ def _task_vectors64(env_name, task_set, seed, num_tasks):
     return vecs[:num_tasks] if task_set == "train" else vecs[num_tasks:]
 
 
-class MetaWorldEnv:
+class MetaWorldEnv(gymnasium.Env):
     """A Meta-World v3 task with action repeat, a time limit and 64x64 RGB (or 39-d state) observations.
 
     Parametric variability (paper, Sec. 5): `num_tasks` task vectors (object/goal positions) of `task_set` are
@@ -445,8 +437,9 @@ class MetaWorldEnv:
         self._rng = np.random.default_rng(seed)
         self._obs_type, self._repeat = obs_type, action_repeat
         self._max_agent_steps = -(-time_limit // action_repeat)  # ceil: the env's own truncation ends the last one
-        self.action_size = 4
-        self.obs_shape = (image_size, image_size, 3) if obs_type == "pixels" else (39,)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32)
+        self.observation_space = gymnasium.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8) \
+            if obs_type == "pixels" else gymnasium.spaces.Box(-np.inf, np.inf, (39,), np.float32)
         self.task_index, self.task_vector, self.last_success = 0, self._vectors[0].astype(np.float32), False
         self._state, self._policy = None, None
 
@@ -477,14 +470,15 @@ class MetaWorldEnv:
         image = self._renderer.render()
         return np.ascontiguousarray(image[::-1] if self._flip else image)  # (H, W, 3) uint8
 
-    def reset(self, seed=None):
+    def reset(self, *, seed=None, options=None):
+        """The info holds the active task vector (EPISODE_EXTRAS: stored with the episode for analysis)."""
         rng = self._rng if seed is None else np.random.default_rng(seed)
         self.task_index = int(rng.integers(len(self._tasks)))
         self.task_vector = self._vectors[self.task_index].astype(np.float32)
         self._env.set_task(self._tasks[self.task_index])
         self._state, _ = self._env.reset()
         self._steps, self.last_success = 0, False
-        return self._observe()
+        return self._observe(), {"task_vector": self.task_vector, "task_index": self.task_index}
 
     def step(self, action):
         """Returns (obs, reward, terminated, truncated, info); Meta-World never terminates (not even on success)."""
@@ -499,10 +493,6 @@ class MetaWorldEnv:
         self._steps += 1
         truncated = truncated or self._steps >= self._max_agent_steps
         return self._observe(), reward, False, truncated, {"success": success}
-
-    def extras(self) -> dict:
-        """What an episode file stores besides the trajectory: the task vector (for analysis, never an input)."""
-        return {"task_vector": self.task_vector, "task_index": self.task_index}
 
     def close(self):
         """Free the GL context now: one left to the interpreter's exit prints EGL errors. Safe to call twice."""
@@ -530,7 +520,10 @@ def expert_action(env: MetaWorldEnv) -> np.ndarray:
     return np.clip(env._policy.get_action(state), -1.0, 1.0).astype(np.float32)
 
 
-def make_env(args: Args, env_id: str, seed: int):
+EPISODE_EXTRAS = ("task_vector", "task_index")  # the keys of reset's info an episode file stores as well
+
+
+def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
     # every env of a run (train and eval) draws its task vectors from the run's seed: the same set
     return MetaWorldEnv(env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit,
                         args.camera, args.task_set, args.num_tasks, args.render_quality, task_seed=args.seed)
@@ -540,16 +533,17 @@ def collect_expert_episodes(args: Args, run_path: str):
     """A fast prior buffer: episodes of Meta-World's scripted expert on the run's task set, then exit."""
     from tqdm import tqdm
 
-    env = make_env(args, args.env_id, args.seed)
+    envs = make_envs(args, args.env_id, args.seed, 1)
+    env = envs.envs[0]
     episode_dir = os.path.join(run_path, "episodes")
     os.makedirs(episode_dir, exist_ok=True)
     try:
         for index in tqdm(range(len(list_episode_files(episode_dir)), args.collect_expert), desc="expert episodes"):
-            episode, _ = run_episode(env, lambda o: expert_action(env), seed=args.seed * 1_000_003 + index,
-                                     task=env.task_name)
+            episode = run_episodes(envs, lambda o: expert_action(env)[None], [args.seed * 1_000_003 + index],
+                                   env.task_name)[0][0]
             save_episode(episode_dir, index, episode)
     finally:
-        env.close()
+        envs.close()
     print(f"wrote {args.collect_expert} expert episodes to {episode_dir}", flush=True)
 
 
@@ -591,10 +585,8 @@ def list_episode_files(directory: str) -> list:
 
 
 class Replay:
-    """Episodes in memory (images as uint8) and uniform sampling of fixed-length chunks.
-
-    A chunk is addressed by (episode id, start); `gather` copies only the chunks, never whole episodes.
-    """
+    """Episodes in memory (images as uint8) and uniform sampling of fixed-length chunks, each addressed by (episode
+    id, start): `gather` copies only the chunks, never whole episodes."""
 
     def __init__(self):
         self.episodes, self.tasks, self.returns = [], [], []
@@ -728,9 +720,8 @@ def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_s
 
 
 def preprocess_obs(obs, device):
-    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5].
-
-    The permuted image is channels-last in memory already, which is the layout the conv stacks want."""
+    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]
+    (channels-last in memory already: the layout the conv stacks want)."""
     obs = torch.as_tensor(obs).to(device, non_blocking=True)  # uint8 crosses to the device: 4x less to copy
     if obs.dtype == torch.uint8:
         return obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5)
@@ -873,11 +864,8 @@ def set_speed_options(module: nn.Module, precision: str, channels_last: bool) ->
 
 
 class RSSM(nn.Module):
-    """Recurrent state-space model: deterministic GRU state h and Gaussian stochastic state z.
-
-    prior p(z_t | h_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t);  posterior q(z_t | h_t, e_t) with e_t the obs embedding.
-    A state is a dict of tensors: mean, std, stoch (B, S) and deter (B, D).
-    """
+    """Recurrent state-space model: prior p(z_t | h_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t); posterior
+    q(z_t | h_t, e_t), e_t the obs embedding. A state is a dict: mean, std, stoch (B, S) and deter (B, D)."""
 
     def __init__(self, action_size, embed_size, stoch_size=30, deter_size=200, hidden_size=200):
         super().__init__()
@@ -988,15 +976,9 @@ def tanh_normal(out, init_std, min_std, mean_scale):
 
 # ALGO LOGIC: addressing
 class AddressNet(nn.Module):
-    """f_φ: a chunk of trajectory -> an embedding (B, units).
-
-    Section 4.2: a GRU over "a sequence of actions concatenated with observation embeddings obtained from CNN"; the
-    last GRU output is the embedding. Its own encoder (not the world model's: the features that make a good
-    addressing are not those that make a good reconstruction) reads each frame; [frame features, action] pass an ELU
-    layer into the GRU. reward_input (not in the paper) appends the stored reward to each step's input. layer_norm
-    (not in the paper) normalises that layer before the ELU: unnormalised states can saturate the GRU, so that every
-    chunk gets the same embedding and q turns uniform.
-    """
+    """f_φ: a chunk -> an embedding (B, units), the last output of a GRU over [frame features, action] (Section 4.2).
+    Its own encoder: what makes a good addressing is not what makes a good reconstruction. layer_norm and
+    reward_input are not in the paper (--address-layer-norm keeps unnormalised states from saturating the GRU)."""
 
     def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int, layer_norm: bool = False,
                  reward_input: bool = False):
@@ -1039,10 +1021,7 @@ def gaussian_loglik(mean, target, event_dims: int, std: float = 1.0):
 def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: float, reward_mask=None,
                      model_mask=None, obs_std: float = 1.0):
     """ELBO of a batch of chunks: (KL with free nats) - log p(o|s) - log p(r|s). Returns loss, posts, metrics.
-
-    reward_mask (B,) drops the reward term on chunks whose reward belongs to another task; model_mask (B,) drops
-    chunks from the whole loss (--no-wm-on-addressed). Posteriors come back for every chunk.
-    """
+    reward_mask (B,) drops the reward term of other tasks' chunks; model_mask (B,) drops chunks from the whole loss."""
     embed = wm.encoder(batch["obs"])  # (B, T, E)
     post, prior = wm.rssm.observe(embed, batch["action"])
     feat = wm.rssm.feat(post)  # (B, T, F)
@@ -1059,10 +1038,7 @@ def world_model_loss(wm: WorldModel, batch: dict, free_nats: float, kl_scale: fl
 
 
 def lambda_return(reward, value, pcont, bootstrap, lam: float):
-    """λ-returns over time (dim 0): R_t = r_t + γ_t [(1-λ) v_{t+1} + λ R_{t+1}], R_T = bootstrap.
-
-    reward, value, pcont: (H, N); bootstrap: (N,). Returns (H, N).
-    """
+    """λ-returns over time: R_t = r_t + γ_t [(1-λ) v_{t+1} + λ R_{t+1}], R_T = bootstrap: (H, N), (N,) -> (H, N)."""
     next_values = torch.cat([value[1:], bootstrap[None]], 0)
     inputs = reward + pcont * next_values * (1 - lam)
     returns, last = [], bootstrap
@@ -1187,6 +1163,9 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     return {"metrics": metrics, "timings": timings}
 
 
+# ----------------------------------------------------------------------------------------------------------
+# 7. Algorithm 2: the addressing step (Eqs. 1-3), then the batch mix
+# ----------------------------------------------------------------------------------------------------------
 # ALGO LOGIC: addressing — q(j | x, M) = softmax_j(f(x)ᵀ f(M_j)) and the three objectives
 def address_logits(emb_x, emb_m, stop_grad_x: bool):
     """(n, U) current-task embeddings, (m, U) multitask embeddings -> (n, m) logits, a plain dot product."""
@@ -1226,16 +1205,9 @@ def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float,
                select: str = "embeddings", reduction: str = "mean"):
     """Eq. 1: imagine from the posteriors of the selected chunks M_j; the loss is −V_λ along the imagined steps.
 
-    reduction="mean": the γ^t-weighted mean over steps and starts, Dreamer's actor loss for the same E Σ_t V_λ
-    (Section 3 writes the actor's objective so too); "sum": −Σ_t V_λ(s_t) as Eq. 1 reads, averaged over starts. The
-    two differ by a factor (H-1) and the γ^t weights: Adam's steps barely see a constant factor, clipping does.
-
-    The agent stays fixed (frozen); the gradient reaches φ through the one-hots, the inputs of the world model.
-    select="embeddings" multiplies the one-hots with the encodings of the m chunks, "frames" with their frames:
-    the selected values are the same (a one-hot row picks one chunk); only the straight-through gradient differs.
-    starts > 0 imagines from that many of the n·L posteriors, drawn at random: an unbiased estimate of the mean
-    over all of them at a fraction of the cost (the posteriors themselves still filter every step of each chunk).
-    """
+    The agent is frozen: the gradient reaches φ through the one-hots. reduction "mean" (Dreamer's actor loss: the
+    γ^t-weighted mean) or "sum" (Eq. 1's Σ_t); select "embeddings" or "frames" (the same forward pass, another
+    straight-through gradient); starts > 0 imagines from that many random posteriors (an unbiased estimate)."""
     action = select_chunks(one_hot, m_batch["action"])  # (n, L, A)
     with Freeze(agent):
         if select == "frames":
@@ -1326,44 +1298,76 @@ def mix_batch(x: dict, m_batch: dict) -> dict:
     return {k: torch.cat([x[k], m_batch[k]], 0) for k in x}
 
 
-def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str,
-                      chunk_rewards: Optional[np.ndarray] = None):
-    """Heat map of q̂(j | x_i): rows = current chunks, columns = candidates sorted by task then stored return.
-    Below it: each candidate's episode return and, if given, the chunk's own reward sum."""
-    import matplotlib
+def every(n: int, count: int) -> bool:
+    """True on every n-th count (count 0 included)."""
+    return count % n == 0
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    order = np.lexsort((returns, np.array(tasks)))
-    rows = 2 if chunk_rewards is None else 3
-    fig, axes = plt.subplots(rows, 1, figsize=(9, 3.5 + rows), sharex=True, height_ratios=[4] + [1] * (rows - 1))
-    ax, ax_ret = axes[0], axes[1]
-    # log-ratio to the uniform distribution: red = picked more often than uniform, blue = less
-    ratio = np.log10(np.maximum(probs[:, order] * probs.shape[1], 1e-12))
-    image = ax.imshow(ratio, aspect="auto", interpolation="nearest", cmap="RdBu_r", vmin=-2, vmax=2)
-    fig.colorbar(image, ax=list(axes), label="log10(q̂(j | x_i) / uniform)")
-    sorted_tasks = [tasks[i] for i in order]
-    for i in range(1, len(order)):  # task boundaries
-        if sorted_tasks[i] != sorted_tasks[i - 1]:
-            for a in axes:
-                a.axvline(i - 0.5, color="white" if a is ax else "gray", lw=1)
-    for task in dict.fromkeys(sorted_tasks):
-        idx = [i for i, t in enumerate(sorted_tasks) if t == task]
-        ax.text(np.mean(idx), -0.8, task, ha="center", va="bottom", fontsize=8)
-    ax.set_ylabel("current chunk x_i")
-    ax.set_title(title, pad=14)
-    ax_ret.plot(np.arange(len(order)), returns[order], lw=1)
-    ax_ret.set_ylabel("episode\nreturn", fontsize=8)
-    if chunk_rewards is not None:
-        axes[2].scatter(np.arange(len(order)), chunk_rewards[order], s=1)
-        axes[2].set_ylabel("chunk\nreward", fontsize=8)
-    axes[-1].set_xlabel("candidate chunk j (sorted by task, then stored episode return)")
-    return fig
+def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
+           device, task_name: str, updates_done: int) -> dict:
+    """One update of Algorithm 2 given n current-task chunks x_i ~ M_τ (torch, on device): (a) the addressing step,
+    (b) the agent's step on a batch that, with probability p, is β·n current chunks plus (1-β)·n chunks of M
+    picked by q̂ (or uniformly for `uniform`)."""
+    n, seq_len = args.batch_size, args.seq_len
+    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
+    use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
+
+    if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
+        t0 = time.perf_counter()
+        if addressing.D is None or every(args.address_refresh, updates_done):
+            addressing.refresh(multitask, seq_len, args.address_candidates, rng)
+            metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
+        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
+        metrics.update(addressing.train(agent, x, m_batch, args))
+        timings["addressing"] = time.perf_counter() - t0
+
+    batch, reward_mask, model_mask = x, None, None
+    keep = int(round(args.current_fraction * n))
+    if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
+        t0 = time.perf_counter()
+        borrow = n - keep
+        if addressing is None:
+            picks = multitask.sample_ids(borrow, seq_len, rng)
+        else:
+            j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i)
+            picks = (addressing.candidates[0][j], addressing.candidates[1][j])
+        batch = mix_batch({k: v[:keep] for k, v in x.items()}, to_torch(multitask.gather(*picks, seq_len), device))
+        tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
+        reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
+        if not args.wm_on_addressed:
+            model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
+        timings["batch_sampling"] += time.perf_counter() - t0
+    out = train_step(agent, batch, args, reward_mask, model_mask)
+    out["metrics"].update(metrics)
+    out["timings"].update(timings)
+    out["picks"] = picks
+    return out
+
+
+def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int,
+                  seq_len: int) -> dict:
+    """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
+    picked = [e for p in picks for e in p[0]]
+    metrics = {"addressing/mixed_batches": len(picks) / updates}
+    if not picked:
+        return metrics
+    tasks = [multitask.tasks[e] for e in picked]
+    for task in sorted(set(multitask.tasks)):
+        metrics[f"addressing/pick_fraction/{task}"] = tasks.count(task) / len(tasks)
+    metrics["addressing/picked_return"] = float(np.mean([multitask.returns[e] for e in picked]))
+    pool = addressing.candidates[0] if addressing is not None and addressing.candidates is not None \
+        else np.arange(len(multitask))
+    metrics["addressing/candidate_return"] = float(np.mean([multitask.returns[e] for e in pool]))
+    # the same at the level of chunks: the stored reward sum of each picked chunk against the candidates'
+    metrics["addressing/picked_chunk_reward"] = float(np.mean([multitask.chunk_rewards(*p, seq_len).mean()
+                                                               for p in picks if len(p[0])]))
+    if addressing is not None and addressing.candidates is not None:
+        metrics["addressing/candidate_chunk_reward"] = float(addressing.candidate_rewards.mean())
+    return metrics
 
 
 # ----------------------------------------------------------------------------------------------------------
-# 7. Acting, logging, checkpoints
+# 8. Acting, logging, checkpoints
 # ----------------------------------------------------------------------------------------------------------
 class Policy:
     """Acts online in N envs at once: keeps the RSSM posteriors of the current episodes and picks actions from them."""
@@ -1405,68 +1409,33 @@ def finish_episode(steps: dict, extras: dict, task: str, success: Optional[bool]
     return episode
 
 
-def run_episode(env, act, seed: int, task: str, record: bool = False):
-    """Play one episode; act(obs) -> action. Returns the episode dict and the rendered frames (record=True)."""
-    obs = env.reset(seed=seed)
-    steps = {"obs": [obs], "action": [np.zeros(env.action_size, np.float32)], "reward": [0.0], "terminal": [False]}
-    frames = [env.render()] if record else []
-    done, success = False, None  # success stays None for envs that do not report it
-    while not done:
-        action = act(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
-        for key, value in zip(("obs", "action", "reward", "terminal"), (obs, action, reward, terminated)):
-            steps[key].append(value)
-        if "success" in info:
-            success = bool(success) or bool(info["success"])
-        if record:
-            frames.append(env.render())
-        done = terminated or truncated
-        check_stop()  # a stopped run drops the episode in flight
-    return finish_episode(steps, env.extras(), task, success), frames
+def worker_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
+    """make_env, in a collecting subprocess too, where Ctrl-C and SIGTERM are the main process's to handle."""
+    if multiprocessing.parent_process() is not None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return make_env(args, env_id, seed)
 
 
-class GymAdapter(gymnasium.Env):
-    """One of this file's envs as a gymnasium.Env, so that gymnasium's AsyncVectorEnv can step it in a subprocess.
-
-    A vector env steps all its envs together: once an episode is over, further steps return its last observation
-    and change nothing (Meta-World raises on a step past its time limit)."""
-
-    def __init__(self, args: Args, env_id: str, seed: int):
-        if multiprocessing.parent_process() is not None:  # a worker: Ctrl-C and SIGTERM are the main process's
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        self.env = make_env(args, env_id, seed)
-        pixels = len(self.env.obs_shape) == 3
-        self.observation_space = gymnasium.spaces.Box(0 if pixels else -np.inf, 255 if pixels else np.inf,
-                                                      self.env.obs_shape, np.uint8 if pixels else np.float32)
-        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (self.env.action_size,), np.float32)
-        self._obs, self._done = None, True
-
-    def reset(self, seed=None, options=None):
-        self._obs, self._done = self.env.reset(seed=seed), False
-        return self._obs, {}
-
-    def step(self, action):
-        if self._done:
-            return self._obs, 0.0, False, True, {}
-        self._obs, reward, terminated, truncated, info = self.env.step(action)
-        self._done = terminated or truncated
-        return self._obs, reward, terminated, truncated, info
-
-    def extras(self) -> dict:
-        return self.env.extras()
-
-    def close(self):
-        self.env.close()
+def make_envs(args: Args, env_id: str, seed: int, num_envs: int) -> gymnasium.vector.VectorEnv:
+    """num_envs envs (seeds seed, seed + 1, ...) as one gymnasium vector env: in this process for one, in spawned
+    subprocesses (no fork of a process using torch) for more. An env whose episode ended before the others' is
+    reset on its next step (gymnasium's next-step autoreset); run_episodes ignores it until all have ended."""
+    makers = [functools.partial(worker_env, args, env_id, seed + i) for i in range(num_envs)]
+    if num_envs == 1:
+        return gymnasium.vector.SyncVectorEnv(makers)
+    return gymnasium.vector.AsyncVectorEnv(makers, context="spawn")
 
 
-def run_parallel_episodes(envs, act, seeds: list, task: str) -> list:
-    """One episode in each env of a gymnasium vector env of GymAdapters; act(obs (N, ...)) -> actions (N, A)."""
-    obs, _ = envs.reset(seed=list(seeds))
+def run_episodes(envs, act, seeds: list, task: str, record: bool = False):
+    """One episode in each env of a vector env; act(obs (N, ...)) -> actions (N, A). Returns the episode dicts
+    and, with record, the rendered frames of the first env's episode."""
+    obs, reset_info = envs.reset(seed=list(seeds))
     n = len(seeds)
     steps = [{"obs": [obs[i]], "action": [np.zeros(envs.single_action_space.shape, np.float32)], "reward": [0.0],
               "terminal": [False]} for i in range(n)]
-    done, success = np.zeros(n, bool), [None] * n
+    frames = [envs.call("render")[0]] if record else []
+    done, success = np.zeros(n, bool), [None] * n  # success stays None for envs that do not report it
     while not done.all():
         action = act(obs)  # (N, A)
         obs, reward, terminated, truncated, info = envs.step(action)
@@ -1475,9 +1444,12 @@ def run_parallel_episodes(envs, act, seeds: list, task: str) -> list:
                 steps[i][key].append(value[i])
             if "success" in info and info["_success"][i]:
                 success[i] = bool(success[i]) or bool(info["success"][i])
+        if record:
+            frames.append(envs.call("render")[0])
         done |= terminated | truncated
-        check_stop()
-    return [finish_episode(steps[i], extras, task, success[i]) for i, extras in enumerate(envs.call("extras"))]
+        check_stop()  # a stopped run drops the episodes in flight
+    extras = [{k: reset_info[k][i] for k in EPISODE_EXTRAS} for i in range(n)]
+    return [finish_episode(steps[i], extras[i], task, success[i]) for i in range(n)], frames
 
 
 def episode_metrics(prefix: str, episodes: list) -> dict:
@@ -1497,11 +1469,9 @@ class Logger:
         self.writer = SummaryWriter(run_path)
         self.jsonl = open(os.path.join(run_path, "metrics.jsonl"), "a")
         self.wandb = None
-        if args.track:
-            try:
-                import wandb
-            except ImportError:
-                raise UsageError("--track needs wandb: pip install wandb") from None
+        if args.track:  # check_args made sure wandb imports
+            import wandb
+
             self.wandb = wandb.init(project=args.wandb_project, config=vars(args), name=os.path.basename(run_path),
                                     dir=run_path, resume="allow")
 
@@ -1573,6 +1543,11 @@ def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
                "state": state, "rng": {"python": random.getstate(), "numpy": np.random.get_state(),
                                        "torch": torch.get_rng_state()}, "args": checked_args(args)}
     write_checkpoint(path, payload)
+
+
+def save_addressing(path: str, addressing: Addressing, args: Args):
+    write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
+                            "args": checked_args(args)})
 
 
 def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
@@ -1662,7 +1637,7 @@ def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, ta
 
 
 # ----------------------------------------------------------------------------------------------------------
-# 8. Training loop
+# 9. Training loop
 # ----------------------------------------------------------------------------------------------------------
 def resolve_run(args: Args, given: set):
     """The run's args and folder, checked, nothing written: a new folder's name, or --resume's folder with its saved
@@ -1715,74 +1690,6 @@ def open_run(args: Args, run_path: str, rewrite_args: bool):
     return lock
 
 
-def every(n: int, count: int) -> bool:
-    """True on every n-th count (count 0 included)."""
-    return count % n == 0
-
-
-def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
-           device, task_name: str, updates_done: int) -> dict:
-    """One update of Algorithm 2 given n current-task chunks x_i ~ M_τ (torch, on device): (a) the addressing step,
-    (b) the agent's step on a batch that, with probability p, is β·n current chunks plus (1-β)·n chunks of M
-    picked by q̂ (or uniformly for `uniform`)."""
-    n, seq_len = args.batch_size, args.seq_len
-    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
-    use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
-
-    if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
-        t0 = time.perf_counter()
-        if addressing.D is None or every(args.address_refresh, updates_done):
-            addressing.refresh(multitask, seq_len, args.address_candidates, rng)
-            metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
-        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
-        metrics.update(addressing.train(agent, x, m_batch, args))
-        timings["addressing"] = time.perf_counter() - t0
-
-    batch, reward_mask, model_mask = x, None, None
-    keep = int(round(args.current_fraction * n))
-    if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
-        t0 = time.perf_counter()
-        borrow = n - keep
-        if addressing is None:
-            picks = multitask.sample_ids(borrow, seq_len, rng)
-        else:
-            j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i)
-            picks = (addressing.candidates[0][j], addressing.candidates[1][j])
-        batch = mix_batch({k: v[:keep] for k, v in x.items()}, to_torch(multitask.gather(*picks, seq_len), device))
-        tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
-        reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
-        if not args.wm_on_addressed:
-            model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
-        timings["batch_sampling"] += time.perf_counter() - t0
-    out = train_step(agent, batch, args, reward_mask, model_mask)
-    out["metrics"].update(metrics)
-    out["timings"].update(timings)
-    out["picks"] = picks
-    return out
-
-
-def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int,
-                  seq_len: int) -> dict:
-    """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
-    picked = [e for p in picks for e in p[0]]
-    metrics = {"addressing/mixed_batches": len(picks) / updates}
-    if not picked:
-        return metrics
-    tasks = [multitask.tasks[e] for e in picked]
-    for task in sorted(set(multitask.tasks)):
-        metrics[f"addressing/pick_fraction/{task}"] = tasks.count(task) / len(tasks)
-    metrics["addressing/picked_return"] = float(np.mean([multitask.returns[e] for e in picked]))
-    pool = addressing.candidates[0] if addressing is not None and addressing.candidates is not None \
-        else np.arange(len(multitask))
-    metrics["addressing/candidate_return"] = float(np.mean([multitask.returns[e] for e in pool]))
-    # the same at the level of chunks: the stored reward sum of each picked chunk against the candidates'
-    metrics["addressing/picked_chunk_reward"] = float(np.mean([multitask.chunk_rewards(*p, seq_len).mean()
-                                                               for p in picks if len(p[0])]))
-    if addressing is not None and addressing.candidates is not None:
-        metrics["addressing/candidate_chunk_reward"] = float(addressing.candidate_rewards.mean())
-    return metrics
-
-
 def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: float) -> str:
     """The plain-log line inside a round of updates: how far the round is, its speed and the time it has left."""
     from tqdm import tqdm
@@ -1790,11 +1697,6 @@ def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: 
     rate = done / max(seconds, 1e-9)  # done >= 1 here
     return (f"step {env_steps}/{total_steps} | update {done}/{todo} of this round | {rate:.3g} updates/s | "
             f"round ETA {tqdm.format_interval((todo - done) / rate)}")
-
-
-def save_addressing(path: str, addressing: Addressing, args: Args):
-    write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
-                            "args": checked_args(args)})
 
 
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
@@ -1815,13 +1717,9 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
         return
 
-    env, eval_env = make_env(args, env_id, seed), make_env(args, env_id, seed + 10_000)
-    workers = None  # --num-envs > 1: collecting envs in subprocesses (spawned: no fork of a process using torch)
-    if args.num_envs > 1:
-        workers = gymnasium.vector.AsyncVectorEnv(
-            [functools.partial(GymAdapter, args, env_id, seed + i) for i in range(args.num_envs)], context="spawn",
-            autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
-    agent = Agent(env.obs_shape, env.action_size, args).to(device)
+    envs, eval_env = make_envs(args, env_id, seed, args.num_envs), make_envs(args, env_id, seed + 10_000, 1)
+    task, action_size = make_env_spec(env_id)["name"], envs.single_action_space.shape[0]
+    agent = Agent(envs.single_observation_space.shape, action_size, args).to(device)
     policy = Policy(agent, device)
     n_params = sum(p.numel() for p in agent.parameters())
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
@@ -1863,7 +1761,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 for x, waited in sampler.batches(todo):
                     if STOP["signal"]:  # finish the current update, not the round
                         break
-                    out = update(agent, x, multitask, addressing, args, rng, device, env.task_name, state["updates"])
+                    out = update(agent, x, multitask, addressing, args, rng, device, task, state["updates"])
                     out["timings"]["batch_sampling"] += waited
                     state["updates"], done = state["updates"] + 1, done + 1
                     rows.append({k: v.detach() for k, v in out["metrics"].items()})
@@ -1907,26 +1805,25 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     write_gif(os.path.join(task_path, "videos", f"openloop_{env_steps:08d}.gif"),
                               open_loop_frames(agent.wm, batch))
                 if addressing is not None and addressing.D is not None and every(args.address_plot_every, len(replay)):
-                    import matplotlib.pyplot as plt
+                    from report import addressing_figure  # the plotting lives in report.py
 
                     x = to_torch(replay.sample(16, args.seq_len, rng), device)
                     cand_episodes = addressing.candidates[0]
                     fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
                                             np.array([multitask.returns[e] for e in cand_episodes]),
-                                            f"{args.method} on {env.task_name}, step {env_steps}",
+                                            f"{args.method} on {task}, step {env_steps}",
                                             addressing.candidate_rewards)
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
-                    logger.writer.add_figure("addressing/probabilities", fig, env_steps)
-                    plt.close(fig)
+                    logger.writer.add_figure("addressing/probabilities", fig, env_steps)  # closes the figure
 
             # (b) evaluation without exploration noise, every eval_every environment steps
             if args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes:
                 episodes = []
                 for i in range(args.eval_episodes):
                     policy.reset()
-                    episode, frames = run_episode(eval_env, lambda o: policy.act(o[None], None, rng)[0],
-                                                  seed=seed * 1_000_003 + 7919 * env_steps + i,
-                                                  task=env.task_name, record=args.capture_video and i == 0)
+                    (episode,), frames = run_episodes(eval_env, lambda o: policy.act(o, None, rng),
+                                                      [seed * 1_000_003 + 7919 * env_steps + i], task,
+                                                      record=args.capture_video and i == 0)
                     episodes.append(episode)
                     if frames:
                         write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
@@ -1942,14 +1839,11 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             first = len(replay)
             seeds = [seed * 1_000_003 + first + i for i in range(args.num_envs)]  # episode k's seed, N or not
             if len(replay) < args.prefill_episodes:
-                act = lambda o: rng.uniform(-1, 1, (len(o), env.action_size)).astype(np.float32)  # noqa: E731
+                act = lambda o: rng.uniform(-1, 1, (len(o), action_size)).astype(np.float32)  # noqa: E731
             else:
                 policy.reset(args.num_envs)
                 act = lambda o: policy.act(o, args.expl_noise, rng)  # noqa: E731
-            if workers is None:
-                episodes = [run_episode(env, lambda o: act(o[None])[0], seeds[0], env.task_name)[0]]
-            else:
-                episodes = run_parallel_episodes(workers, act, seeds, env.task_name)
+            episodes, _ = run_episodes(envs, act, seeds, task)
             for episode in episodes:
                 save_episode(episode_dir, len(replay), episode)
                 replay.add(episode)
@@ -1970,10 +1864,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         progress.close()
         sampler.close()
         logger.close()
-        env.close()
+        envs.close()
         eval_env.close()
-        if workers is not None:
-            workers.close()
 
 
 def main(args: Args, given: frozenset = frozenset()):
@@ -1987,7 +1879,7 @@ def main(args: Args, given: frozenset = frozenset()):
     rng = np.random.default_rng(args.seed)
     tasks = task_list(args)
     probe = make_env(args, tasks[0], args.seed)
-    obs_shape, action_size = probe.obs_shape, probe.action_size
+    obs_shape, action_size = probe.observation_space.shape, probe.action_space.shape[0]
     probe.close()
 
     # the multitask buffer M: prior episodes (the same K are drawn again on resume: same seed, same files)

@@ -213,6 +213,37 @@ def plot_runs(run_paths: list, out: str, title):
     print(f"wrote {out}")
 
 
+def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title: str, chunk_rewards=None):
+    """The scripts' --address-plot-every picture (they import it from here): a heat map of q̂(j | x_i), rows =
+    current chunks, columns = candidates sorted by task then stored return.
+    Below it: each candidate's episode return and, if given, the chunk's own reward sum."""
+    order = np.lexsort((returns, np.array(tasks)))
+    rows = 2 if chunk_rewards is None else 3
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 3.5 + rows), sharex=True, height_ratios=[4] + [1] * (rows - 1))
+    ax, ax_ret = axes[0], axes[1]
+    # log-ratio to the uniform distribution: red = picked more often than uniform, blue = less
+    ratio = np.log10(np.maximum(probs[:, order] * probs.shape[1], 1e-12))
+    image = ax.imshow(ratio, aspect="auto", interpolation="nearest", cmap="RdBu_r", vmin=-2, vmax=2)
+    fig.colorbar(image, ax=list(axes), label="log10(q̂(j | x_i) / uniform)")
+    sorted_tasks = [tasks[i] for i in order]
+    for i in range(1, len(order)):  # task boundaries
+        if sorted_tasks[i] != sorted_tasks[i - 1]:
+            for a in axes:
+                a.axvline(i - 0.5, color="white" if a is ax else "gray", lw=1)
+    for task in dict.fromkeys(sorted_tasks):
+        idx = [i for i, t in enumerate(sorted_tasks) if t == task]
+        ax.text(np.mean(idx), -0.8, task, ha="center", va="bottom", fontsize=8)
+    ax.set_ylabel("current chunk x_i")
+    ax.set_title(title, pad=14)
+    ax_ret.plot(np.arange(len(order)), returns[order], lw=1)
+    ax_ret.set_ylabel("episode\nreturn", fontsize=8)
+    if chunk_rewards is not None:
+        axes[2].scatter(np.arange(len(order)), chunk_rewards[order], s=1)
+        axes[2].set_ylabel("chunk\nreward", fontsize=8)
+    axes[-1].set_xlabel("candidate chunk j (sorted by task, then stored episode return)")
+    return fig
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", nargs="*", help="experiment folders (results/<experiment>), or results/ itself")

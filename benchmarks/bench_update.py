@@ -89,33 +89,23 @@ def cpu_name() -> str:
 def time_collection(S, args, device: torch.device) -> None:
     """Env steps per second of collection with the agent's policy acting (rendering + one encoder and RSSM step per
     agent step), in one env and in --num-envs subprocesses."""
-    import functools
-
-    import gymnasium
-
     args = dataclasses.replace(args, time_limit=min(args.time_limit, 400), total_steps=10**9)
-    env = S.make_env(args, args.env_id, args.seed)
-    policy = S.Policy(S.Agent(env.obs_shape, env.action_size, args).to(device), device)
-    rng = np.random.default_rng(args.seed)
+    policy, rng = None, np.random.default_rng(args.seed)
     for num_envs in sorted({1, args.num_envs}):
-        workers = None if num_envs == 1 else gymnasium.vector.AsyncVectorEnv(
-            [functools.partial(S.GymAdapter, args, args.env_id, args.seed + i) for i in range(num_envs)],
-            context="spawn", autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
+        envs = S.make_envs(args, args.env_id, args.seed, num_envs)
+        if policy is None:
+            policy = S.Policy(S.Agent(envs.single_observation_space.shape, envs.single_action_space.shape[0],
+                                      args).to(device), device)
         for _ in range(2):  # the first round warms up (subprocess start, renderer, kernels); the second is timed
             policy.reset(num_envs)
             t0 = time.perf_counter()
-            if workers is None:
-                episodes = [S.run_episode(env, lambda o: policy.act(o[None], args.expl_noise, rng)[0], 0, "bench")[0]]
-            else:
-                episodes = S.run_parallel_episodes(workers, lambda o: policy.act(o, args.expl_noise, rng),
-                                                   list(range(num_envs)), "bench")
+            episodes, _ = S.run_episodes(envs, lambda o: policy.act(o, args.expl_noise, rng), list(range(num_envs)),
+                                         "bench")
             seconds = time.perf_counter() - t0
         steps = sum(len(ep["reward"]) - 1 for ep in episodes) * args.action_repeat
         print(f"{device.type:<6} collection {args.env_id} ({args.obs_type}), {num_envs} env(s): "
               f"{steps / seconds:.0f} env steps/s", flush=True)
-        if workers is not None:
-            workers.close()
-    env.close()
+        envs.close()
 
 
 def profile_update(S, args, obs_shape, action_size: int, replay, multitask, rng, device: torch.device) -> None:

@@ -41,16 +41,16 @@ def test_env_spec_names():
 
 
 def test_spaces_and_dtypes(push):
-    obs = push.reset(seed=0)
-    assert push.action_size == 4 and push.obs_shape == (64, 64, 3)
-    assert obs.shape == push.obs_shape and obs.dtype == np.uint8
+    obs, _ = push.reset(seed=0)
+    assert push.action_space.shape == (4,) and push.observation_space.shape == (64, 64, 3)
+    assert obs.shape == push.observation_space.shape and obs.dtype == np.uint8
     obs, reward, terminated, truncated, info = push.step(np.ones(4, np.float32))
     assert obs.shape == (64, 64, 3) and obs.dtype == np.uint8 and isinstance(reward, float)
     assert terminated is False and truncated is False
     assert push.render().dtype == np.uint8 and push.task_vector.dtype == np.float32
     state_env = MetaWorldEnv("metaworld/push", seed=0, obs_type="state")
-    state = state_env.reset(seed=0)
-    assert state_env.obs_shape == (39,) and state.shape == (39,) and state.dtype == np.float32
+    state, _ = state_env.reset(seed=0)
+    assert state_env.observation_space.shape == (39,) and state.shape == (39,) and state.dtype == np.float32
     assert np.all(state[-3:] == 0)  # the goal (part of the task vector) is hidden from the agent
     state_env.close()
 
@@ -58,7 +58,7 @@ def test_spaces_and_dtypes(push):
 @pytest.mark.parametrize("camera", ["corner2_moved", "corner2"])
 def test_images_upright(camera):
     env = MetaWorldEnv("metaworld/push", seed=0, camera=camera)
-    image = env.reset(seed=0)
+    image, _ = env.reset(seed=0)
     wood = _wood(image)
     assert wood[48:].mean() > 0.15 and wood[:16].mean() < 0.02  # the table at the bottom, background on top
     assert not np.array_equal(image, image[::-1])
@@ -95,7 +95,7 @@ def test_active_vector_comes_from_the_set(push):
 
 
 def _rollout(env, seed, steps=10):
-    frames, rewards = [env.reset(seed=seed)], []
+    frames, rewards = [env.reset(seed=seed)[0]], []
     for action in _random_actions(steps):
         obs, reward, _, _, _ = env.step(action)
         frames.append(obs)
@@ -216,7 +216,7 @@ def test_bad_env_id_is_one_line(tmp_path):
 def test_table2_tasks_build_and_step(task):
     env = MetaWorldEnv(f"metaworld/{task}", seed=3)
     try:
-        obs = env.reset(seed=1)
+        obs, _ = env.reset(seed=1)
         assert obs.shape == (64, 64, 3) and obs.std() > 5  # a real picture, not a blank frame
         obs, reward, terminated, truncated, info = env.step(expert_action(env))
         assert 0.0 <= reward <= 20.0 and not terminated and not truncated and "success" in info

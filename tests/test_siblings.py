@@ -19,11 +19,11 @@ def sections(script: str) -> dict:
 
 def test_shared_sections_are_identical():
     dmc, metaworld = sections("rama_dreamer.py"), sections("rama_metaworld.py")
-    assert sorted(dmc) == sorted(metaworld) == list(range(1, 9))
-    # 4. storage and replay, 5. networks, 6. losses, 7. acting, logging, checkpoints: word for word
-    for number in (4, 5, 6, 7):
+    assert sorted(dmc) == sorted(metaworld) == list(range(1, 10))
+    # 4. storage and replay, 5. networks, 6. losses, 7. Algorithm 2, 8. acting, logging, checkpoints: word for word
+    for number in (4, 5, 6, 7, 8):
         assert dmc[number] == metaworld[number], f"section {number} differs between the two scripts"
-    # 8. the training loop: only Meta-World's expert collection (--collect-expert) is its own
-    changed = [line for line in difflib.ndiff(dmc[8].splitlines(), metaworld[8].splitlines())
+    # 9. the training loop: only Meta-World's expert collection (--collect-expert) is its own
+    changed = [line for line in difflib.ndiff(dmc[9].splitlines(), metaworld[9].splitlines())
                if line[:2] in ("- ", "+ ")]
     assert all("collect_expert" in line for line in changed), changed

@@ -2,7 +2,6 @@
 tolerance), same batches with and without prefetch, same episodes with and without parallel envs."""
 import copy
 import dataclasses
-import functools
 
 import numpy as np
 import pytest
@@ -189,23 +188,20 @@ def test_policy_acts_in_several_envs_at_once():
 
 @pytest.mark.slow
 def test_parallel_envs_play_the_sequential_episodes():
-    """AsyncVectorEnv over GymAdapters: with the same seeds and a deterministic policy, the same episodes as one
-    env played episode after episode; a finished env ignores the extra steps."""
-    import gymnasium
-
+    """Two envs in subprocesses (AsyncVectorEnv): with the same seeds and a deterministic policy, the same episodes
+    as one env in this process played episode after episode."""
     args = rd.resolve_defaults(rd.Args(env_id="dmc/cartpole-balance", obs_type="state", time_limit=40))
     seeds = [11, 12]
-    envs = gymnasium.vector.AsyncVectorEnv([functools.partial(rd.GymAdapter, args, args.env_id, i) for i in range(2)],
-                                           context="spawn", autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
+    envs = rd.make_envs(args, args.env_id, 0, 2)
     act = lambda obs: np.tanh(obs[..., :1]).astype(np.float32)  # noqa: E731  deterministic, state-dependent
     try:
-        parallel = rd.run_parallel_episodes(envs, act, seeds, "cartpole-balance")
+        parallel, _ = rd.run_episodes(envs, act, seeds, "cartpole-balance")
     finally:
         envs.close()
-    env = rd.make_env(args, args.env_id, 0)
+    env = rd.make_envs(args, args.env_id, 0, 1)
     try:
         for seed, episode in zip(seeds, parallel):
-            single, _ = rd.run_episode(env, lambda o: act(o[None])[0], seed, "cartpole-balance")
+            (single,), _ = rd.run_episodes(env, act, [seed], "cartpole-balance")
             assert episode.keys() == single.keys()
             assert len(episode["reward"]) == 21  # 40 env steps / repeat 2, plus the reset step
             for key in ("obs", "action", "reward", "terminal", "return"):
