@@ -389,13 +389,9 @@ def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
 # An episode is a dict of arrays over T+1 steps: obs[t] is seen after action[t] (action[0] = 0) and brings
 # reward[t] (reward[0] = 0); terminal[t] marks a true end (not a time limit). One `.npz` file per episode,
 # named `{index:06d}-{agent_steps}.npz`, so the step count of a run is recoverable from the file names alone.
-def episode_filename(index: int, episode: dict) -> str:
-    return f"{index:06d}-{len(episode['reward']) - 1}.npz"
-
-
 def save_episode(directory: str, index: int, episode: dict) -> str:
     """Write atomically: a temp file in the same folder, then a rename, so a kill never leaves half a file."""
-    path = os.path.join(directory, episode_filename(index, episode))
+    path = os.path.join(directory, f"{index:06d}-{len(episode['reward']) - 1}.npz")
     tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
     with open(tmp, "wb") as f:
         np.savez_compressed(f, **episode)
@@ -556,8 +552,7 @@ def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_s
 
 
 def preprocess_obs(obs, device):
-    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]
-    (channels-last in memory already: the layout the conv stacks want)."""
+    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]."""
     obs = torch.as_tensor(obs).to(device, non_blocking=True)  # uint8 crosses to the device: 4x less to copy
     if obs.dtype == torch.uint8:
         return obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5)
@@ -770,16 +765,12 @@ class RSSM(nn.Module):
 class WorldModel(nn.Module):
     def __init__(self, obs_shape, action_size, args: Args):
         super().__init__()
-        if len(obs_shape) == 3:
-            self.encoder = ConvEncoder(obs_shape, args.cnn_depth)
-        else:
-            self.encoder = MLPEncoder(obs_shape[0], args.mlp_units)
+        pixels = len(obs_shape) == 3
+        self.encoder = ConvEncoder(obs_shape, args.cnn_depth) if pixels else MLPEncoder(obs_shape[0], args.mlp_units)
         self.rssm = RSSM(action_size, self.encoder.embed_size, args.stoch_size, args.deter_size, args.hidden_size)
         feat = self.rssm.feat_size
-        if len(obs_shape) == 3:
-            self.decoder = ConvDecoder(feat, obs_shape, args.cnn_depth)
-        else:
-            self.decoder = MLPDecoder(feat, obs_shape[0], args.mlp_units)
+        self.decoder = (ConvDecoder(feat, obs_shape, args.cnn_depth) if pixels
+                        else MLPDecoder(feat, obs_shape[0], args.mlp_units))
         self.reward = MLP(feat, args.mlp_units, 2, 1)
 
 
@@ -1129,11 +1120,6 @@ class Addressing:
         return torch.multinomial(self.probs(x), 1).squeeze(-1).cpu().numpy()
 
 
-def mix_batch(x: dict, m_batch: dict) -> dict:
-    """Rows of the current chunks followed by rows of the multitask chunks (torch dicts of (B, T, ...))."""
-    return {k: torch.cat([x[k], m_batch[k]], 0) for k in x}
-
-
 def every(n: int, count: int) -> bool:
     """True on every n-th count (count 0 included)."""
     return count % n == 0
@@ -1167,7 +1153,8 @@ def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addres
         else:
             j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i)
             picks = (addressing.candidates[0][j], addressing.candidates[1][j])
-        batch = mix_batch({k: v[:keep] for k, v in x.items()}, to_torch(multitask.gather(*picks, seq_len), device))
+        m_batch = to_torch(multitask.gather(*picks, seq_len), device)
+        batch = {k: torch.cat([x[k][:keep], m_batch[k]], 0) for k in x}  # keep current rows, then borrowed ones
         tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
         reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
         if not args.wm_on_addressed:
@@ -1223,26 +1210,12 @@ class Policy:
         state = self.state if self.state is not None else wm.rssm.initial(len(obs), self.device)
         self.state = wm.rssm.obs_step(wm.rssm.img_step(state, self.action), wm.rssm.obs_embed(embed))
         feat = wm.rssm.feat(self.state)
-        if explore_noise is None:
-            action = self.agent.actor.mode(feat)
-        else:
-            action = self.agent.actor(feat).sample()
+        action = self.agent.actor.mode(feat) if explore_noise is None else self.agent.actor(feat).sample()
         action = action.cpu().numpy()  # (N, A)
         if explore_noise:
             action = np.clip(action + rng.normal(0.0, explore_noise, action.shape), -1.0, 1.0)
         self.action = torch.as_tensor(action, dtype=torch.float32, device=self.device)
         return action.astype(np.float32)
-
-
-def finish_episode(steps: dict, extras: dict, task: str, success: Optional[bool]) -> dict:
-    """Lists of per-step obs/action/reward/terminal -> the episode dict that is stored (see section 4)."""
-    episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None) for k, v in steps.items()}
-    episode.update({k: np.asarray(v) for k, v in extras.items()})
-    episode["task"] = np.asarray(task)
-    episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
-    if success is not None:  # envs that report success: success at any step counts
-        episode["success"] = np.asarray(success)
-    return episode
 
 
 def worker_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
@@ -1284,8 +1257,17 @@ def run_episodes(envs, act, seeds: list, task: str, record: bool = False):
             frames.append(envs.call("render")[0])
         done |= terminated | truncated
         check_stop()  # a stopped run drops the episodes in flight
-    extras = [{k: reset_info[k][i] for k in EPISODE_EXTRAS} for i in range(n)]
-    return [finish_episode(steps[i], extras[i], task, success[i]) for i in range(n)], frames
+    episodes = []  # the dicts that are stored (section 4)
+    for i in range(n):
+        episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None)
+                   for k, v in steps[i].items()}
+        episode.update({k: np.asarray(reset_info[k][i]) for k in EPISODE_EXTRAS})
+        episode["task"] = np.asarray(task)
+        episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
+        if success[i] is not None:  # envs that report success: success at any step counts
+            episode["success"] = np.asarray(success[i])
+        episodes.append(episode)
+    return episodes, frames
 
 
 def episode_metrics(prefix: str, episodes: list) -> dict:
@@ -1381,11 +1363,6 @@ def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
     write_checkpoint(path, payload)
 
 
-def save_addressing(path: str, addressing: Addressing, args: Args):
-    write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
-                            "args": checked_args(args)})
-
-
 def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
     load_state(path, agent, payload["agent"])
     for name, opt in agent.optimizers().items():
@@ -1452,12 +1429,6 @@ def check_precision(precision: str, device: torch.device) -> None:
     if precision == "bf16" and not native:
         raise UsageError(f"--precision bf16: {found}, so bf16 would be emulated (about 13x slower than fp32 on such "
                          f"a CPU); use --precision fp32")
-
-
-def seed_everything(seed: int):
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, task: str = "synthetic") -> Replay:
@@ -1557,7 +1528,6 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     task, action_size = make_env_spec(env_id)["name"], envs.single_action_space.shape[0]
     agent = Agent(envs.single_observation_space.shape, action_size, args).to(device)
     policy = Policy(agent, device)
-    n_params = sum(p.numel() for p in agent.parameters())
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
     # updates it still has to do (a run stopped mid-round finishes it; one killed after a round does not redo it)
     state = {"updates": 0, "next_eval": args.eval_every}
@@ -1571,8 +1541,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     for folder in (["videos"] if args.capture_video else []) + (["addressing"] if addressing else []):
         os.makedirs(os.path.join(task_path, folder), exist_ok=True)
     print(f"run: {task_path} | {env_id} ({args.obs_type}) | method {args.method} | device {device} | "
-          f"{n_params / 1e6:.2f}M parameters | {len(replay)} episodes on disk ({env_steps} steps) | "
-          f"multitask buffer {len(multitask)} episodes", flush=True)
+          f"{sum(p.numel() for p in agent.parameters()) / 1e6:.2f}M parameters | {len(replay)} episodes on disk "
+          f"({env_steps} steps) | multitask buffer {len(multitask)} episodes", flush=True)
 
     from tqdm import tqdm
 
@@ -1633,7 +1603,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 if done:  # the checkpoint first: a kill between the two loses this row rather than repeating it
                     save_checkpoint(checkpoint_path, agent, state, args)
                     if addressing is not None:
-                        save_addressing(address_path, addressing, args)
+                        write_checkpoint(address_path, {"net": addressing.net.state_dict(),
+                                                        "opt": addressing.opt.state_dict(), "args": checked_args(args)})
                     logger.log(env_steps, metrics)
                 check_stop()
                 if args.capture_video:
@@ -1672,8 +1643,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 sys.stdout.flush()
 
             # (c) collect one episode per env (random actions while prefilling) and store each atomically
-            first = len(replay)
-            seeds = [seed * 1_000_003 + first + i for i in range(args.num_envs)]  # episode k's seed, N or not
+            seeds = [seed * 1_000_003 + len(replay) + i for i in range(args.num_envs)]  # episode k's seed, N or not
             if len(replay) < args.prefill_episodes:
                 act = lambda o: rng.uniform(-1, 1, (len(o), action_size)).astype(np.float32)  # noqa: E731
             else:
@@ -1697,11 +1667,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                       f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
                 last_line = time.time()
     finally:
-        progress.close()
-        sampler.close()
-        logger.close()
-        envs.close()
-        eval_env.close()
+        for resource in (progress, sampler, logger, envs, eval_env):
+            resource.close()
 
 
 def main(args: Args, given: frozenset = frozenset()):
@@ -1711,7 +1678,9 @@ def main(args: Args, given: frozenset = frozenset()):
     check_args(args)
     args, run_path = resolve_run(args, set(given))
     device = resolve_device(args.device)
-    seed_everything(args.seed)
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     tasks = task_list(args)
     probe = make_env(args, tasks[0], args.seed)
