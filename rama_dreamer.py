@@ -294,11 +294,8 @@ def make_env_spec(env_id: str) -> dict:
 
 
 class DMCEnv(gymnasium.Env):
-    """A DeepMind Control task with action repeat, a time limit and 64x64 RGB (or state) observations.
-
-    Rendering goes through one `mujoco.Renderer` per env: dm_control's own `physics.render` can return black
-    frames once another renderer exists in the process. Observations: uint8 (H, W, 3) or float32 (D,).
-    """
+    """A DeepMind Control task with action repeat, a time limit and 64x64 RGB (or state) observations. One
+    `mujoco.Renderer` per env: dm_control's own `physics.render` can return black frames once another exists."""
 
     def __init__(self, env_id, seed, obs_type="pixels", image_size=64, action_repeat=2, time_limit=1000, camera=-1):
         import mujoco
@@ -502,8 +499,7 @@ class ChunkSampler:
             batch = pending.result() if self.pool else self._sample()
             if self.pool and i + 1 < count:
                 pending = self.pool.submit(self._sample)
-            x = to_torch(batch, self.device)
-            yield x, time.perf_counter() - t0
+            yield to_torch(batch, self.device), time.perf_counter() - t0
 
     def close(self):
         if self.pool:
@@ -1553,13 +1549,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     disable=True if args.plain_log else None)
     start_time, start_steps = time.time(), env_steps
     last_line = time.time()  # when the last plain line was printed
-    updates_per_round = args.updates_per_episode * args.num_envs  # C updates per collected episode
     try:
         while env_steps < args.total_steps:
             # (a) C updates on chunks of the replay (mixed with M), once there is something to learn from
             if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
                 if state.get("round_at") != len(replay):
-                    state["round_at"], state["round_left"] = len(replay), updates_per_round
+                    state["round_at"], state["round_left"] = len(replay), args.updates_per_episode * args.num_envs
                 rows, sums, timings, picks, done = [], {}, {}, [], 0
                 round_start, todo = time.time(), state["round_left"]
                 round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,

@@ -305,15 +305,11 @@ def make_env_spec(env_id: str) -> dict:
 
 @functools.lru_cache(maxsize=8)
 def _sample_rand_vecs(task: str, seed: int, count: int) -> np.ndarray:
-    """`count` distinct task vectors (float64), drawn the way Meta-World draws its own benchmark tasks.
-
-    Resetting an env with an unfrozen vector runs the task's own sampler, rejection loops included (e.g.
-    pick-place redraws goals too close to the object), so every vector is a valid configuration. We use
-    the env's private generator (`seeded_rand_vec`) instead of Meta-World's global np.random seeding.
-    Not the public `metaworld.ML1(name, seed)`: it draws test_tasks with seed + 1, so run s's new set is run
-    s + 1's train set (checked on 3.1.1: a prior collected with one seed would hold another seed's new tasks),
-    and it fixes 50 vectors per set (no --num-tasks).
-    """
+    """`count` distinct task vectors (float64), drawn as Meta-World draws its benchmark tasks: a reset with an
+    unfrozen vector runs the task's own sampler, rejection loops included (pick-place redraws goals too close to the
+    object), so every vector is valid. With the env's private generator (`seeded_rand_vec`), not Meta-World's global
+    np.random seeding, nor the public `metaworld.ML1(name, seed)`: it draws test_tasks with seed + 1, so run s's new
+    set is run s + 1's train set (checked on 3.1.1), and it fixes 50 vectors per set (no --num-tasks)."""
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
     env = ALL_V3_ENVIRONMENTS[task]()
@@ -333,11 +329,8 @@ def _sample_rand_vecs(task: str, seed: int, count: int) -> np.ndarray:
 
 
 def task_vectors(env_name: str, task_set: str, seed: int, num_tasks: int = 50) -> np.ndarray:
-    """The (num_tasks, D) float32 task vectors of a set: "train" (prior experience) or "new" (adaptation).
-
-    Both sets come from one stream of 2 * num_tasks distinct draws: train = the first half, new = the
-    second, so they are disjoint by construction (checked draw by draw) and fixed by (env, seed).
-    """
+    """The (num_tasks, D) float32 task vectors of a set: "train" (prior experience) or "new" (adaptation), the first
+    and second half of one stream of 2 * num_tasks distinct draws: disjoint by construction, fixed by (env, seed)."""
     return _task_vectors64(env_name, task_set, seed, num_tasks).astype(np.float32)
 
 
@@ -352,15 +345,12 @@ class MetaWorldEnv(gymnasium.Env):
     """A Meta-World v3 task with action repeat, a time limit and 64x64 RGB (or 39-d state) observations.
 
     Parametric variability (paper, Sec. 5): `num_tasks` task vectors (object/goal positions) of `task_set` are
-    drawn at start-up from `task_seed` (default: `seed`; pass the run's seed to the eval env too so that both
-    see the same set). Each reset makes one active, chosen by the episode's seed (or the env's own generator
-    when reset() gets none). Given its vector an episode is deterministic: Meta-World ignores reset(seed=) and
-    env.seed(); the frozen vector alone places object and goal. The agent never sees the vector (the state
-    observation's goal slot is zeroed, as in ML1); `task_vector` holds it for analysis. Note that the goal
-    marker (a green site) is drawn in the image, as in the visual Meta-World literature.
-
-    `last_success`: True once info["success"] held at any env step of the current episode.
-    """
+    drawn at start-up from `task_seed` (default: `seed`; the eval env gets the run's seed too: the same set). Each
+    reset makes one active, chosen by the episode's seed (or the env's own generator when reset() gets none). Given
+    its vector an episode is deterministic: Meta-World ignores reset(seed=) and env.seed(); the frozen vector alone
+    places object and goal. The agent never sees the vector (the state's goal slot is zeroed, as in ML1;
+    `task_vector` holds it for analysis); the goal marker (a green site) is drawn in the image, as in the visual
+    Meta-World literature. `last_success`: True once info["success"] held at any env step of the episode."""
 
     def __init__(self, env_id, seed, obs_type="pixels", image_size=64, action_repeat=2, time_limit=500,
                  camera="corner2_moved", task_set="train", num_tasks=50, render_quality="fast", task_seed=None):
@@ -448,11 +438,8 @@ class MetaWorldEnv(gymnasium.Env):
 
 
 def expert_action(env: MetaWorldEnv) -> np.ndarray:
-    """The scripted Meta-World policy's action for the env's current state (any obs_type).
-
-    The policies read the goal from the last 3 state entries, which partial observability zeroes: put the
-    true goal back (a copy; the env's own observation stays goal-free).
-    """
+    """The scripted Meta-World policy's action for the env's current state (any obs_type). The policies read the
+    goal from the last 3 state entries, which partial observability zeroes: a copy of the state gets it back."""
     if env._policy is None:
         import warnings
 
@@ -611,8 +598,7 @@ class ChunkSampler:
             batch = pending.result() if self.pool else self._sample()
             if self.pool and i + 1 < count:
                 pending = self.pool.submit(self._sample)
-            x = to_torch(batch, self.device)
-            yield x, time.perf_counter() - t0
+            yield to_torch(batch, self.device), time.perf_counter() - t0
 
     def close(self):
         if self.pool:
@@ -1662,13 +1648,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     disable=True if args.plain_log else None)
     start_time, start_steps = time.time(), env_steps
     last_line = time.time()  # when the last plain line was printed
-    updates_per_round = args.updates_per_episode * args.num_envs  # C updates per collected episode
     try:
         while env_steps < args.total_steps:
             # (a) C updates on chunks of the replay (mixed with M), once there is something to learn from
             if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
                 if state.get("round_at") != len(replay):
-                    state["round_at"], state["round_left"] = len(replay), updates_per_round
+                    state["round_at"], state["round_left"] = len(replay), args.updates_per_episode * args.num_envs
                 rows, sums, timings, picks, done = [], {}, {}, [], 0
                 round_start, todo = time.time(), state["round_left"]
                 round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,
