@@ -78,8 +78,7 @@ class Args:
     obs_type: Literal["pixels", "state"] = "pixels"
     """`pixels` (64x64 RGB, the paper) or `state` (the suite's proprioceptive vector, MLP encoder; cheap)"""
     run_dir: str = "runs"  # the folder that holds run folders
-    resume: Optional[str] = None
-    """a run folder to continue with the args in its args.json (beside it only RESUME_FLAGS may be given)"""
+    resume: Optional[str] = None  # a run folder to continue with its args.json (only RESUME_FLAGS beside it)
     track: bool = False  # log to Weights & Biases as well (needs `pip install wandb`)
     wandb_project: str = "rama"  # the W&B project
     eval_every: int = 10_000  # run evaluation episodes (no exploration noise) every this many environment steps
@@ -93,8 +92,7 @@ class Args:
     precision: Literal["fp32", "bf16"] = "fp32"
     """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
     channels_last: bool = True  # conv weights and activations in channels-last layout (faster convs on CPU and GPU)
-    compile: bool = False
-    """torch.compile the RSSM's img_step and obs_step (worth it on CUDA; the first updates pay the compile time)"""
+    compile: bool = False  # torch.compile the RSSM steps (worth it on CUDA; the first updates pay the compile time)
     prefetch: bool = True  # sample (and pin) the next batch in a background thread while the current update trains
     num_envs: int = 1  # environments collecting in parallel (subprocesses via gymnasium's AsyncVectorEnv when > 1)
 
@@ -109,8 +107,7 @@ class Args:
     num_tasks: int = 50  # task vectors drawn at start-up; one is active per episode and never shown to the agent
     render_quality: Literal["fast", "shadows", "default"] = "fast"
     """`fast` (no shadows or reflections, ~10 ms/frame on CPU), `shadows` (~40 ms), `default` (~130 ms)"""
-    collect_expert: int = 0
-    """write this many episodes of Meta-World's scripted expert to the run folder and exit (a fast prior buffer)"""
+    collect_expert: int = 0  # write this many scripted-expert episodes to the run folder and exit (a fast prior buffer)
 
     # World model
     deter_size: int = 200  # RSSM deterministic (GRU) state size
@@ -118,10 +115,8 @@ class Args:
     hidden_size: int = 200  # RSSM hidden layer size
     cnn_depth: int = 32  # channel multiplier of the conv encoder and decoder
     mlp_units: int = 400  # units of the reward, value and actor MLPs (and of the state encoder/decoder)
-    free_nats: Optional[float] = None
-    """KL below this many nats is not penalised; None = 3 for pixels (the paper), 0 for state (see README)"""
-    obs_std: Optional[float] = None
-    """std of the decoder's Gaussian p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)"""
+    free_nats: Optional[float] = None  # KL free nats; None = 3 for pixels (the paper), 0 for state (see README)
+    obs_std: Optional[float] = None  # std of p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)
     kl_scale: float = 1.0  # weight of the KL term
     model_lr: float = 6e-4  # Adam learning rate of the world model
     grad_clip: float = 100.0  # gradient norm clipping of every optimiser
@@ -147,10 +142,8 @@ class Args:
     prefill_episodes: int = 1  # S: random-action episodes collected before training (the paper: 1)
 
     # Addressing (RAMa)
-    prior_dirs: Tuple[str, ...] = ()
-    """episode folders (or run folders holding `episodes/`) of earlier runs: the multitask buffer M"""
-    prior_min_return: Optional[float] = None
-    """keep only prior episodes whose return is at least this (the paper: 600 for walker walk)"""
+    prior_dirs: Tuple[str, ...] = ()  # episode folders of earlier runs (or their run folders): the multitask buffer M
+    prior_min_return: Optional[float] = None  # least return of a kept prior episode (the paper: 600 for walker walk)
     prior_max_episodes: int = 1000  # K: prior episodes kept, subsampled at random
     address_prob: float = 0.5  # p: probability that a world-model batch mixes in multitask chunks
     current_fraction: float = 0.5  # β: fraction of a mixed batch that stays current-task chunks
@@ -159,8 +152,7 @@ class Args:
     address_grad_clip: float = 100.0  # gradient norm clipping of the addressing model
     address_units: int = 200  # GRU size of the addressing model = size of a trajectory embedding
     address_cnn_depth: int = 16  # channel multiplier of the addressing model's own conv encoder
-    address_imagine_starts: int = 0
-    """VRAMa: imagine from this many random posteriors of the selected chunks; 0 = all (the paper)"""
+    address_imagine_starts: int = 0  # VRAMa: imagine from this many random posteriors of the picks; 0 = all (the paper)
     vrama_select: Literal["embeddings", "frames"] = "embeddings"
     """VRAMa: what the straight-through one-hots multiply: the chunks' encodings or their frames (see README)"""
     vrama_reduction: Literal["mean", "sum"] = "mean"
@@ -171,8 +163,7 @@ class Args:
     address_standardize: bool = True  # standardise the REINFORCE advantages over the batch (as the authors' code does)
     address_refresh: int = 100  # recompute the candidates' embeddings D every this many updates (C in Algorithm 2)
     address_candidates: int = 10_000  # most candidate chunks of M in D (a random subset of M's chunks at each refresh)
-    wm_on_addressed: bool = True
-    """train the world model on addressed chunks too (--no-wm-on-addressed: they only start imagination)"""
+    wm_on_addressed: bool = True  # train the world model on addressed chunks too (off: they only start imagination)
     address_plot_every: int = 10  # draw the addressing-probabilities picture every this many episodes
 
 
@@ -1709,9 +1700,9 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     from report import addressing_figure  # the plotting lives in report.py
 
                     x = to_torch(replay.sample(16, args.seq_len, rng), device)
-                    cand_episodes = addressing.candidates[0]
-                    fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
-                                            np.array([multitask.returns[e] for e in cand_episodes]),
+                    cands = addressing.candidates[0]
+                    fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cands],
+                                            np.array([multitask.returns[e] for e in cands]),
                                             f"{args.method} on {task}, step {env_steps}",
                                             addressing.candidate_rewards)
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
