@@ -388,12 +388,16 @@ def save_episode(directory: str, index: int, episode: dict) -> str:
     return path
 
 
-def load_episode(path: str) -> dict:
+def read_npz(path: str, keys=None) -> dict:
     try:
         with np.load(path) as data:
-            episode = {k: data[k] for k in data.files}
+            return {k: data[k] for k in (data.files if keys is None else keys)}
     except Exception as e:  # a truncated or foreign file: name it, don't crash deep inside
         raise UsageError(f"{path}: not a readable episode file ({type(e).__name__}: {e})") from None
+
+
+def load_episode(path: str) -> dict:
+    episode = read_npz(path)
     missing = {"obs", "action", "reward", "terminal", "task"} - set(episode)
     if missing:
         raise UsageError(f"{path}: not an episode file (missing {sorted(missing)})")
@@ -518,13 +522,7 @@ def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_s
             raise UsageError(f"--prior-dirs {directory}: holds no episode files (NNNNNN-LEN.npz)")
         paths += [p for folder in folders for p in list_episode_files(folder)]
     if min_return is not None:  # reading one member of an .npz is cheap: filter before loading images
-        def stored_return(path):
-            try:
-                with np.load(path) as data:
-                    return float(data["return"])
-            except Exception as e:
-                raise UsageError(f"{path}: not a readable episode file ({type(e).__name__}: {e})") from None
-        paths = [p for p in paths if stored_return(p) >= min_return]
+        paths = [p for p in paths if float(read_npz(p, ["return"])["return"]) >= min_return]
         if not paths:
             raise UsageError(f"--prior-min-return {min_return}: no prior episode has that return")
     if len(paths) > max_episodes:
