@@ -184,10 +184,9 @@ def check_args(args: Args) -> None:
     """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
     positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
                 "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
-                "prefill_episodes", "prior_max_episodes", "address_batch", "address_units",
-                "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every", "model_lr",
-                "actor_lr", "value_lr", "address_lr", "grad_clip", "address_grad_clip", "num_tasks",
-                "num_envs"]
+                "prefill_episodes", "prior_max_episodes", "address_batch", "address_units", "address_cnn_depth",
+                "address_refresh", "address_candidates", "address_plot_every", "model_lr", "actor_lr", "value_lr",
+                "address_lr", "grad_clip", "address_grad_clip", "num_tasks", "num_envs"]
     for name in positive:
         if not getattr(args, name) > 0:  # `not >`: NaN is refused too
             raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
