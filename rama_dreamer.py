@@ -62,164 +62,100 @@ td.Distribution.set_default_validate_args(False)  # argument checks cost Python 
 @dataclass
 class Args:
     # Experiment
-    exp_name: str = os.path.basename(__file__)[: -len(".py")]
-    """the name of this experiment (part of the run folder's name)"""
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]  # this experiment's name (part of the run folder's name)
     env_id: str = "dmc/walker-walk"
     """the environment: `dmc/<domain>-<task>` (any DeepMind Control suite task) or `kitchen/bluebox|bluecone`"""
     method: Literal["dreamer", "uniform", "vrama", "rrama", "rbrama"] = "dreamer"
     """dreamer (no prior data), uniform (the paper's "No addressing"), vrama (Eq. 1), rrama (Eq. 2), rbrama (Eq. 3)"""
     task_sequence: Optional[str] = None
     """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk`; overrides --env-id"""
-    seed: int = 1
-    """seed of python, numpy, torch, the environment and every sampler"""
-    device: str = "auto"
-    """`auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ..."""
-    total_steps: int = 2_000_000
-    """environment steps to train for (counting repeated actions, as the paper does)"""
+    seed: int = 1  # seed of python, numpy, torch, the environment and every sampler
+    device: str = "auto"  # `auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ...
+    total_steps: int = 2_000_000  # environment steps to train for (counting repeated actions, as the paper does)
     obs_type: Literal["pixels", "state"] = "pixels"
     """`pixels` (64x64 RGB, the paper) or `state` (the suite's proprioceptive vector, MLP encoder; cheap)"""
-    run_dir: str = "runs"
-    """the folder that holds run folders"""
-    resume: Optional[str] = None
-    """a run folder to continue with the args in its args.json (beside it only RESUME_FLAGS may be given)"""
-    track: bool = False
-    """log to Weights & Biases as well (needs `pip install wandb`)"""
-    wandb_project: str = "rama"
-    """the W&B project"""
-    eval_every: int = 10_000
-    """run evaluation episodes (no exploration noise) every this many environment steps"""
-    eval_episodes: int = 1
-    """evaluation episodes per evaluation"""
-    capture_video: bool = False
-    """save GIFs of evaluation episodes and of open-loop world-model predictions under `videos/`"""
-    plain_log: bool = False
-    """print plain lines instead of progress bars (always so without a terminal on stderr)"""
+    run_dir: str = "runs"  # the folder that holds run folders
+    resume: Optional[str] = None  # a run folder to continue with its args.json (only RESUME_FLAGS beside it)
+    track: bool = False  # log to Weights & Biases as well (needs `pip install wandb`)
+    wandb_project: str = "rama"  # the W&B project
+    eval_every: int = 10_000  # run evaluation episodes (no exploration noise) every this many environment steps
+    eval_episodes: int = 1  # evaluation episodes per evaluation
+    capture_video: bool = False  # save GIFs of eval episodes and of open-loop world-model predictions under `videos/`
+    plain_log: bool = False  # print plain lines instead of progress bars (always so without a terminal on stderr)
     log_interval_seconds: float = 60.0
     """plain-log mode: a progress line at least this often inside a round of updates (0: after every update)"""
 
     # Speed (none of these changes what is learned, up to floating-point rounding)
     precision: Literal["fp32", "bf16"] = "fp32"
     """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
-    channels_last: bool = True
-    """keep conv weights and activations in channels-last memory layout (faster convs on CPU and GPU)"""
-    compile: bool = False
-    """torch.compile the RSSM's img_step and obs_step (worth it on CUDA; the first updates pay the compile time)"""
-    prefetch: bool = True
-    """sample (and pin) the next batch in a background thread while the current update trains"""
-    num_envs: int = 1
-    """environments collecting episodes in parallel (subprocesses through gymnasium's AsyncVectorEnv when > 1)"""
+    channels_last: bool = True  # conv weights and activations in channels-last layout (faster convs on CPU and GPU)
+    compile: bool = False  # torch.compile the RSSM steps (worth it on CUDA; the first updates pay the compile time)
+    prefetch: bool = True  # sample (and pin) the next batch in a background thread while the current update trains
+    num_envs: int = 1  # environments collecting in parallel (subprocesses via gymnasium's AsyncVectorEnv when > 1)
 
     # Environment
-    action_repeat: int = 2
-    """each action is repeated this many environment steps"""
-    time_limit: Optional[int] = None
-    """environment steps per episode; None = 1000 for DMC, 500 for the kitchen"""
-    image_size: int = 64
-    """rendered image height and width"""
-    camera: int = -1
-    """camera id; -1 = the suite default used by Dreamer (0, or 2 for quadruped)"""
-    kitchen_joints: Literal[3, 7] = 3
-    """active joints of the kitchen robot (3: pan, lift, elbow, the paper's setting; or all 7)"""
+    action_repeat: int = 2  # each action is repeated this many environment steps
+    time_limit: Optional[int] = None  # environment steps per episode; None = 1000 for DMC, 500 for the kitchen
+    image_size: int = 64  # rendered image height and width
+    camera: int = -1  # camera id; -1 = the suite default used by Dreamer (0, or 2 for quadruped)
+    kitchen_joints: Literal[3, 7] = 3  # active kitchen-robot joints (3: pan, lift, elbow, as in the paper; or all 7)
 
     # World model
-    deter_size: int = 200
-    """RSSM deterministic (GRU) state size"""
-    stoch_size: int = 30
-    """RSSM stochastic (Gaussian) state size"""
-    hidden_size: int = 200
-    """RSSM hidden layer size"""
-    cnn_depth: int = 32
-    """channel multiplier of the conv encoder and decoder"""
-    mlp_units: int = 400
-    """units of the reward, value and actor MLPs (and of the state encoder/decoder)"""
-    free_nats: Optional[float] = None
-    """KL below this many nats is not penalised; None = 3 for pixels (the paper), 0 for state (see README)"""
-    obs_std: Optional[float] = None
-    """std of the decoder's Gaussian p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)"""
-    kl_scale: float = 1.0
-    """weight of the KL term"""
-    model_lr: float = 6e-4
-    """Adam learning rate of the world model"""
-    grad_clip: float = 100.0
-    """gradient norm clipping of every optimiser"""
-    adam_eps: float = 1e-4
-    """epsilon of every Adam optimiser (Dreamer v1's 1e-4; torch's default is 1e-8)"""
+    deter_size: int = 200  # RSSM deterministic (GRU) state size
+    stoch_size: int = 30  # RSSM stochastic (Gaussian) state size
+    hidden_size: int = 200  # RSSM hidden layer size
+    cnn_depth: int = 32  # channel multiplier of the conv encoder and decoder
+    mlp_units: int = 400  # units of the reward, value and actor MLPs (and of the state encoder/decoder)
+    free_nats: Optional[float] = None  # KL free nats; None = 3 for pixels (the paper), 0 for state (see README)
+    obs_std: Optional[float] = None  # std of p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)
+    kl_scale: float = 1.0  # weight of the KL term
+    model_lr: float = 6e-4  # Adam learning rate of the world model
+    grad_clip: float = 100.0  # gradient norm clipping of every optimiser
+    adam_eps: float = 1e-4  # epsilon of every Adam optimiser (Dreamer v1's 1e-4; torch's default is 1e-8)
     imagine_after_model_step: bool = False
     """step the world model before imagining (off: Dreamer v1 computes all three losses with the same parameters)"""
 
     # Actor-critic
-    actor_lr: float = 8e-5
-    """Adam learning rate of the actor"""
-    value_lr: float = 8e-5
-    """Adam learning rate of the value"""
-    horizon: Optional[int] = None
-    """imagination horizon; None = 15, or 25 for the kitchen (the paper's settings)"""
-    gamma: float = 0.99
-    """discount"""
-    return_lambda: float = 0.95
-    """λ of the λ-returns"""
-    expl_noise: float = 0.3
-    """std of the Gaussian noise added to actions while collecting"""
-    actor_init_std: float = 5.0
-    """the actor's std before training (tanh-normal)"""
-    actor_min_std: float = 1e-4
-    """the actor's minimal std"""
-    actor_mean_scale: float = 5.0
-    """the actor's pre-tanh mean is squashed to [-scale, scale]"""
+    actor_lr: float = 8e-5  # Adam learning rate of the actor
+    value_lr: float = 8e-5  # Adam learning rate of the value
+    horizon: Optional[int] = None  # imagination horizon; None = 15, or 25 for the kitchen (the paper's settings)
+    gamma: float = 0.99  # discount
+    return_lambda: float = 0.95  # λ of the λ-returns
+    expl_noise: float = 0.3  # std of the Gaussian noise added to actions while collecting
+    actor_init_std: float = 5.0  # the actor's std before training (tanh-normal)
+    actor_min_std: float = 1e-4  # the actor's minimal std
+    actor_mean_scale: float = 5.0  # the actor's pre-tanh mean is squashed to [-scale, scale]
 
     # Replay
-    batch_size: int = 50
-    """n: chunks per batch"""
-    seq_len: int = 50
-    """L: steps per chunk"""
-    updates_per_episode: int = 100
-    """C: updates between two collected episodes"""
-    prefill_episodes: int = 1
-    """S: random-action episodes collected before training (the paper: 1)"""
+    batch_size: int = 50  # n: chunks per batch
+    seq_len: int = 50  # L: steps per chunk
+    updates_per_episode: int = 100  # C: updates between two collected episodes
+    prefill_episodes: int = 1  # S: random-action episodes collected before training (the paper: 1)
 
     # Addressing (RAMa)
-    prior_dirs: Tuple[str, ...] = ()
-    """episode folders (or run folders holding `episodes/`) of earlier runs: the multitask buffer M"""
-    prior_min_return: Optional[float] = None
-    """keep only prior episodes whose return is at least this (the paper: 600 for walker walk)"""
-    prior_max_episodes: int = 1000
-    """K: prior episodes kept, subsampled at random"""
-    address_prob: float = 0.5
-    """p: probability that a world-model batch mixes in multitask chunks"""
-    current_fraction: float = 0.5
-    """β: fraction of a mixed batch that stays current-task chunks"""
-    address_batch: int = 50
-    """m: multitask chunks scored against the current chunks per addressing update"""
-    address_lr: float = 1e-3
-    """Adam learning rate of the addressing model"""
-    address_grad_clip: float = 100.0
-    """gradient norm clipping of the addressing model"""
-    address_units: int = 200
-    """GRU size of the addressing model = size of a trajectory embedding"""
-    address_cnn_depth: int = 16
-    """channel multiplier of the addressing model's own conv encoder"""
-    address_imagine_starts: int = 0
-    """VRAMa: imagine from this many random posteriors of the selected chunks; 0 = all (the paper)"""
+    prior_dirs: Tuple[str, ...] = ()  # episode folders of earlier runs (or their run folders): the multitask buffer M
+    prior_min_return: Optional[float] = None  # least return of a kept prior episode (the paper: 600 for walker walk)
+    prior_max_episodes: int = 1000  # K: prior episodes kept, subsampled at random
+    address_prob: float = 0.5  # p: probability that a world-model batch mixes in multitask chunks
+    current_fraction: float = 0.5  # β: fraction of a mixed batch that stays current-task chunks
+    address_batch: int = 50  # m: multitask chunks scored against the current chunks per addressing update
+    address_lr: float = 1e-3  # Adam learning rate of the addressing model
+    address_grad_clip: float = 100.0  # gradient norm clipping of the addressing model
+    address_units: int = 200  # GRU size of the addressing model = size of a trajectory embedding
+    address_cnn_depth: int = 16  # channel multiplier of the addressing model's own conv encoder
+    address_imagine_starts: int = 0  # VRAMa: imagine from this many random posteriors of the picks; 0 = all (the paper)
     vrama_select: Literal["embeddings", "frames"] = "embeddings"
     """VRAMa: what the straight-through one-hots multiply: the chunks' encodings or their frames (see README)"""
     vrama_reduction: Literal["mean", "sum"] = "mean"
     """VRAMa: "mean" = γ^t-weighted mean of V_λ (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
-    address_layer_norm: bool = False
-    """layer-normalise f_φ's per-step input layer (not in the paper; see README)"""
-    address_reward_input: bool = False
-    """feed f_φ the stored reward of each step too (not in the paper)"""
-    address_stop_grad_x: Optional[bool] = None
-    """stop the gradient through f(x); None = on for rrama and rbrama, off for vrama"""
-    address_standardize: bool = True
-    """standardise the REINFORCE advantages over the batch (as the authors' code does)"""
-    address_refresh: int = 100
-    """recompute the embeddings D of the candidate chunks every this many updates (C in Algorithm 2)"""
-    address_candidates: int = 10_000
-    """most candidate chunks of M held in D (a random subset of M's chunks at each refresh)"""
-    wm_on_addressed: bool = True
-    """train the world model on addressed chunks too (--no-wm-on-addressed: they only start imagination)"""
-    address_plot_every: int = 10
-    """draw the addressing-probabilities picture every this many episodes"""
+    address_layer_norm: bool = False  # layer-normalise f_φ's per-step input layer (not in the paper; see README)
+    address_reward_input: bool = False  # feed f_φ the stored reward of each step too (not in the paper)
+    address_stop_grad_x: Optional[bool] = None  # no gradient through f(x); None = on for rrama, rbrama; off for vrama
+    address_standardize: bool = True  # standardise the REINFORCE advantages over the batch (as the authors' code does)
+    address_refresh: int = 100  # recompute the candidates' embeddings D every this many updates (C in Algorithm 2)
+    address_candidates: int = 10_000  # most candidate chunks of M in D (a random subset of M's chunks at each refresh)
+    wm_on_addressed: bool = True  # train the world model on addressed chunks too (off: they only start imagination)
+    address_plot_every: int = 10  # draw the addressing-probabilities picture every this many episodes
 
 
 def resolve_defaults(args: Args) -> Args:
@@ -241,9 +177,9 @@ def check_args(args: Args) -> None:
     """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
     positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
                 "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
-                "prefill_episodes", "prior_max_episodes", "address_batch", "address_units",
-                "address_cnn_depth", "address_refresh", "address_candidates", "address_plot_every", "model_lr",
-                "actor_lr", "value_lr", "address_lr", "grad_clip", "address_grad_clip", "num_envs"]
+                "prefill_episodes", "prior_max_episodes", "address_batch", "address_units", "address_cnn_depth",
+                "address_refresh", "address_candidates", "address_plot_every", "model_lr", "actor_lr", "value_lr",
+                "address_lr", "grad_clip", "address_grad_clip", "num_envs"]
     for name in positive:
         if not getattr(args, name) > 0:  # `not >`: NaN is refused too
             raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
@@ -350,11 +286,8 @@ def make_env_spec(env_id: str) -> dict:
 
 
 class DMCEnv(gymnasium.Env):
-    """A DeepMind Control task with action repeat, a time limit and 64x64 RGB (or state) observations.
-
-    Rendering goes through one `mujoco.Renderer` per env: dm_control's own `physics.render` can return black
-    frames once another renderer exists in the process. Observations: uint8 (H, W, 3) or float32 (D,).
-    """
+    """A DeepMind Control task with action repeat, a time limit and 64x64 RGB (or state) observations. One
+    `mujoco.Renderer` per env: dm_control's own `physics.render` can return black frames once another exists."""
 
     def __init__(self, env_id, seed, obs_type="pixels", image_size=64, action_repeat=2, time_limit=1000, camera=-1):
         import mujoco
@@ -445,13 +378,9 @@ def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
 # An episode is a dict of arrays over T+1 steps: obs[t] is seen after action[t] (action[0] = 0) and brings
 # reward[t] (reward[0] = 0); terminal[t] marks a true end (not a time limit). One `.npz` file per episode,
 # named `{index:06d}-{agent_steps}.npz`, so the step count of a run is recoverable from the file names alone.
-def episode_filename(index: int, episode: dict) -> str:
-    return f"{index:06d}-{len(episode['reward']) - 1}.npz"
-
-
 def save_episode(directory: str, index: int, episode: dict) -> str:
     """Write atomically: a temp file in the same folder, then a rename, so a kill never leaves half a file."""
-    path = os.path.join(directory, episode_filename(index, episode))
+    path = os.path.join(directory, f"{index:06d}-{len(episode['reward']) - 1}.npz")
     tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
     with open(tmp, "wb") as f:
         np.savez_compressed(f, **episode)
@@ -459,12 +388,16 @@ def save_episode(directory: str, index: int, episode: dict) -> str:
     return path
 
 
-def load_episode(path: str) -> dict:
+def read_npz(path: str, keys=None) -> dict:
     try:
         with np.load(path) as data:
-            episode = {k: data[k] for k in data.files}
+            return {k: data[k] for k in (data.files if keys is None else keys)}
     except Exception as e:  # a truncated or foreign file: name it, don't crash deep inside
         raise UsageError(f"{path}: not a readable episode file ({type(e).__name__}: {e})") from None
+
+
+def load_episode(path: str) -> dict:
+    episode = read_npz(path)
     missing = {"obs", "action", "reward", "terminal", "task"} - set(episode)
     if missing:
         raise UsageError(f"{path}: not an episode file (missing {sorted(missing)})")
@@ -562,8 +495,7 @@ class ChunkSampler:
             batch = pending.result() if self.pool else self._sample()
             if self.pool and i + 1 < count:
                 pending = self.pool.submit(self._sample)
-            x = to_torch(batch, self.device)
-            yield x, time.perf_counter() - t0
+            yield to_torch(batch, self.device), time.perf_counter() - t0
 
     def close(self):
         if self.pool:
@@ -590,13 +522,7 @@ def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_s
             raise UsageError(f"--prior-dirs {directory}: holds no episode files (NNNNNN-LEN.npz)")
         paths += [p for folder in folders for p in list_episode_files(folder)]
     if min_return is not None:  # reading one member of an .npz is cheap: filter before loading images
-        def stored_return(path):
-            try:
-                with np.load(path) as data:
-                    return float(data["return"])
-            except Exception as e:
-                raise UsageError(f"{path}: not a readable episode file ({type(e).__name__}: {e})") from None
-        paths = [p for p in paths if stored_return(p) >= min_return]
+        paths = [p for p in paths if float(read_npz(p, ["return"])["return"]) >= min_return]
         if not paths:
             raise UsageError(f"--prior-min-return {min_return}: no prior episode has that return")
     if len(paths) > max_episodes:
@@ -612,8 +538,7 @@ def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_s
 
 
 def preprocess_obs(obs, device):
-    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]
-    (channels-last in memory already: the layout the conv stacks want)."""
+    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]."""
     obs = torch.as_tensor(obs).to(device, non_blocking=True)  # uint8 crosses to the device: 4x less to copy
     if obs.dtype == torch.uint8:
         return obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5)
@@ -826,16 +751,12 @@ class RSSM(nn.Module):
 class WorldModel(nn.Module):
     def __init__(self, obs_shape, action_size, args: Args):
         super().__init__()
-        if len(obs_shape) == 3:
-            self.encoder = ConvEncoder(obs_shape, args.cnn_depth)
-        else:
-            self.encoder = MLPEncoder(obs_shape[0], args.mlp_units)
+        pixels = len(obs_shape) == 3
+        self.encoder = ConvEncoder(obs_shape, args.cnn_depth) if pixels else MLPEncoder(obs_shape[0], args.mlp_units)
         self.rssm = RSSM(action_size, self.encoder.embed_size, args.stoch_size, args.deter_size, args.hidden_size)
         feat = self.rssm.feat_size
-        if len(obs_shape) == 3:
-            self.decoder = ConvDecoder(feat, obs_shape, args.cnn_depth)
-        else:
-            self.decoder = MLPDecoder(feat, obs_shape[0], args.mlp_units)
+        self.decoder = (ConvDecoder(feat, obs_shape, args.cnn_depth) if pixels
+                        else MLPDecoder(feat, obs_shape[0], args.mlp_units))
         self.reward = MLP(feat, args.mlp_units, 2, 1)
 
 
@@ -1185,11 +1106,6 @@ class Addressing:
         return torch.multinomial(self.probs(x), 1).squeeze(-1).cpu().numpy()
 
 
-def mix_batch(x: dict, m_batch: dict) -> dict:
-    """Rows of the current chunks followed by rows of the multitask chunks (torch dicts of (B, T, ...))."""
-    return {k: torch.cat([x[k], m_batch[k]], 0) for k in x}
-
-
 def every(n: int, count: int) -> bool:
     """True on every n-th count (count 0 included)."""
     return count % n == 0
@@ -1223,7 +1139,8 @@ def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addres
         else:
             j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i)
             picks = (addressing.candidates[0][j], addressing.candidates[1][j])
-        batch = mix_batch({k: v[:keep] for k, v in x.items()}, to_torch(multitask.gather(*picks, seq_len), device))
+        m_batch = to_torch(multitask.gather(*picks, seq_len), device)
+        batch = {k: torch.cat([x[k][:keep], m_batch[k]], 0) for k in x}  # keep current rows, then borrowed ones
         tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
         reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
         if not args.wm_on_addressed:
@@ -1279,26 +1196,12 @@ class Policy:
         state = self.state if self.state is not None else wm.rssm.initial(len(obs), self.device)
         self.state = wm.rssm.obs_step(wm.rssm.img_step(state, self.action), wm.rssm.obs_embed(embed))
         feat = wm.rssm.feat(self.state)
-        if explore_noise is None:
-            action = self.agent.actor.mode(feat)
-        else:
-            action = self.agent.actor(feat).sample()
+        action = self.agent.actor.mode(feat) if explore_noise is None else self.agent.actor(feat).sample()
         action = action.cpu().numpy()  # (N, A)
         if explore_noise:
             action = np.clip(action + rng.normal(0.0, explore_noise, action.shape), -1.0, 1.0)
         self.action = torch.as_tensor(action, dtype=torch.float32, device=self.device)
         return action.astype(np.float32)
-
-
-def finish_episode(steps: dict, extras: dict, task: str, success: Optional[bool]) -> dict:
-    """Lists of per-step obs/action/reward/terminal -> the episode dict that is stored (see section 4)."""
-    episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None) for k, v in steps.items()}
-    episode.update({k: np.asarray(v) for k, v in extras.items()})
-    episode["task"] = np.asarray(task)
-    episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
-    if success is not None:  # envs that report success: success at any step counts
-        episode["success"] = np.asarray(success)
-    return episode
 
 
 def worker_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
@@ -1340,8 +1243,17 @@ def run_episodes(envs, act, seeds: list, task: str, record: bool = False):
             frames.append(envs.call("render")[0])
         done |= terminated | truncated
         check_stop()  # a stopped run drops the episodes in flight
-    extras = [{k: reset_info[k][i] for k in EPISODE_EXTRAS} for i in range(n)]
-    return [finish_episode(steps[i], extras[i], task, success[i]) for i in range(n)], frames
+    episodes = []  # the dicts that are stored (section 4)
+    for i in range(n):
+        episode = {k: np.asarray(v, dtype=np.float32 if k in ("action", "reward") else None)
+                   for k, v in steps[i].items()}
+        episode.update({k: np.asarray(reset_info[k][i]) for k in EPISODE_EXTRAS})
+        episode["task"] = np.asarray(task)
+        episode["return"] = np.asarray(episode["reward"].sum(), np.float32)
+        if success[i] is not None:  # envs that report success: success at any step counts
+            episode["success"] = np.asarray(success[i])
+        episodes.append(episode)
+    return episodes, frames
 
 
 def episode_metrics(prefix: str, episodes: list) -> dict:
@@ -1437,11 +1349,6 @@ def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
     write_checkpoint(path, payload)
 
 
-def save_addressing(path: str, addressing: Addressing, args: Args):
-    write_checkpoint(path, {"net": addressing.net.state_dict(), "opt": addressing.opt.state_dict(),
-                            "args": checked_args(args)})
-
-
 def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
     load_state(path, agent, payload["agent"])
     for name, opt in agent.optimizers().items():
@@ -1508,12 +1415,6 @@ def check_precision(precision: str, device: torch.device) -> None:
     if precision == "bf16" and not native:
         raise UsageError(f"--precision bf16: {found}, so bf16 would be emulated (about 13x slower than fp32 on such "
                          f"a CPU); use --precision fp32")
-
-
-def seed_everything(seed: int):
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, task: str = "synthetic") -> Replay:
@@ -1613,7 +1514,6 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     task, action_size = make_env_spec(env_id)["name"], envs.single_action_space.shape[0]
     agent = Agent(envs.single_observation_space.shape, action_size, args).to(device)
     policy = Policy(agent, device)
-    n_params = sum(p.numel() for p in agent.parameters())
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
     # updates it still has to do (a run stopped mid-round finishes it; one killed after a round does not redo it)
     state = {"updates": 0, "next_eval": args.eval_every}
@@ -1627,8 +1527,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     for folder in (["videos"] if args.capture_video else []) + (["addressing"] if addressing else []):
         os.makedirs(os.path.join(task_path, folder), exist_ok=True)
     print(f"run: {task_path} | {env_id} ({args.obs_type}) | method {args.method} | device {device} | "
-          f"{n_params / 1e6:.2f}M parameters | {len(replay)} episodes on disk ({env_steps} steps) | "
-          f"multitask buffer {len(multitask)} episodes", flush=True)
+          f"{sum(p.numel() for p in agent.parameters()) / 1e6:.2f}M parameters | {len(replay)} episodes on disk "
+          f"({env_steps} steps) | multitask buffer {len(multitask)} episodes", flush=True)
 
     from tqdm import tqdm
 
@@ -1639,13 +1539,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     disable=True if args.plain_log else None)
     start_time, start_steps = time.time(), env_steps
     last_line = time.time()  # when the last plain line was printed
-    updates_per_round = args.updates_per_episode * args.num_envs  # C updates per collected episode
     try:
         while env_steps < args.total_steps:
             # (a) C updates on chunks of the replay (mixed with M), once there is something to learn from
             if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
                 if state.get("round_at") != len(replay):
-                    state["round_at"], state["round_left"] = len(replay), updates_per_round
+                    state["round_at"], state["round_left"] = len(replay), args.updates_per_episode * args.num_envs
                 rows, sums, timings, picks, done = [], {}, {}, [], 0
                 round_start, todo = time.time(), state["round_left"]
                 round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,
@@ -1689,7 +1588,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 if done:  # the checkpoint first: a kill between the two loses this row rather than repeating it
                     save_checkpoint(checkpoint_path, agent, state, args)
                     if addressing is not None:
-                        save_addressing(address_path, addressing, args)
+                        write_checkpoint(address_path, {"net": addressing.net.state_dict(),
+                                                        "opt": addressing.opt.state_dict(), "args": checked_args(args)})
                     logger.log(env_steps, metrics)
                 check_stop()
                 if args.capture_video:
@@ -1700,9 +1600,9 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     from report import addressing_figure  # the plotting lives in report.py
 
                     x = to_torch(replay.sample(16, args.seq_len, rng), device)
-                    cand_episodes = addressing.candidates[0]
-                    fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cand_episodes],
-                                            np.array([multitask.returns[e] for e in cand_episodes]),
+                    cands = addressing.candidates[0]
+                    fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cands],
+                                            np.array([multitask.returns[e] for e in cands]),
                                             f"{args.method} on {task}, step {env_steps}",
                                             addressing.candidate_rewards)
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
@@ -1728,8 +1628,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 sys.stdout.flush()
 
             # (c) collect one episode per env (random actions while prefilling) and store each atomically
-            first = len(replay)
-            seeds = [seed * 1_000_003 + first + i for i in range(args.num_envs)]  # episode k's seed, N or not
+            seeds = [seed * 1_000_003 + len(replay) + i for i in range(args.num_envs)]  # episode k's seed, N or not
             if len(replay) < args.prefill_episodes:
                 act = lambda o: rng.uniform(-1, 1, (len(o), action_size)).astype(np.float32)  # noqa: E731
             else:
@@ -1753,11 +1652,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                       f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
                 last_line = time.time()
     finally:
-        progress.close()
-        sampler.close()
-        logger.close()
-        envs.close()
-        eval_env.close()
+        for resource in (progress, sampler, logger, envs, eval_env):
+            resource.close()
 
 
 def main(args: Args, given: frozenset = frozenset()):
@@ -1767,7 +1663,9 @@ def main(args: Args, given: frozenset = frozenset()):
     check_args(args)
     args, run_path = resolve_run(args, set(given))
     device = resolve_device(args.device)
-    seed_everything(args.seed)
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     tasks = task_list(args)
     probe = make_env(args, tasks[0], args.seed)
