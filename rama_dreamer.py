@@ -1592,7 +1592,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                                                         "opt": addressing.opt.state_dict(), "args": checked_args(args)})
                     logger.log(env_steps, metrics)
                 check_stop()
-                if args.capture_video:
+                if args.capture_video and args.obs_type == "pixels":  # open-loop predictions of images only
                     batch = to_torch(replay.sample(4, args.seq_len, rng), device)
                     write_gif(os.path.join(task_path, "videos", f"openloop_{env_steps:08d}.gif"),
                               open_loop_frames(agent.wm, batch))

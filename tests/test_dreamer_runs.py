@@ -36,7 +36,7 @@ def read_metrics(run_path):
 def test_tiny_run_writes_a_complete_run_folder(tmp_path, obs_type):
     flags = ["--env-id", "dmc/walker-walk", "--obs-type", obs_type, "--run-dir", str(tmp_path), *TINY,
              "--total-steps", "400"]
-    run(*flags, *(["--capture-video"] if obs_type == "pixels" else []))
+    run(*flags, "--capture-video")  # state observations: evaluation GIFs from the renderer, no open-loop GIFs
     run_path = only_run(tmp_path)
     assert os.path.basename(run_path).startswith("dmc_walker-walk__rama_dreamer__dreamer__1__")
     with open(os.path.join(run_path, "args.json")) as f:
@@ -56,9 +56,9 @@ def test_tiny_run_writes_a_complete_run_folder(tmp_path, obs_type):
                 "losses/value", "eval/episodic_return"]:
         assert key in keys, key
     assert all(np.isfinite(v) for row in read_metrics(run_path) for v in row.values())
-    if obs_type == "pixels":
-        videos = os.listdir(os.path.join(run_path, "videos"))
-        assert any(v.startswith("eval_") for v in videos) and any(v.startswith("openloop_") for v in videos)
+    videos = os.listdir(os.path.join(run_path, "videos"))
+    assert any(v.startswith("eval_") for v in videos)
+    assert any(v.startswith("openloop_") for v in videos) == (obs_type == "pixels")
 
 
 def _comparable(run_path):
