@@ -62,100 +62,164 @@ td.Distribution.set_default_validate_args(False)  # argument checks cost Python 
 @dataclass
 class Args:
     # Experiment
-    exp_name: str = os.path.basename(__file__)[: -len(".py")]  # this experiment's name (part of the run folder's name)
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """this experiment's name (part of the run folder's name)"""
     env_id: str = "dmc/walker-walk"
     """the environment: `dmc/<domain>-<task>` (any DeepMind Control suite task) or `kitchen/bluebox|bluecone`"""
     method: Literal["dreamer", "uniform", "vrama", "rrama", "rbrama"] = "dreamer"
     """dreamer (no prior data), uniform (the paper's "No addressing"), vrama (Eq. 1), rrama (Eq. 2), rbrama (Eq. 3)"""
     task_sequence: Optional[str] = None
     """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk`; overrides --env-id"""
-    seed: int = 1  # seed of python, numpy, torch, the environment and every sampler
-    device: str = "auto"  # `auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ...
-    total_steps: int = 2_000_000  # environment steps to train for (counting repeated actions, as the paper does)
+    seed: int = 1
+    """seed of python, numpy, torch, the environment and every sampler"""
+    device: str = "auto"
+    """`auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ..."""
+    total_steps: int = 2_000_000
+    """environment steps to train for (counting repeated actions, as the paper does)"""
     obs_type: Literal["pixels", "state"] = "pixels"
     """`pixels` (64x64 RGB, the paper) or `state` (the suite's proprioceptive vector, MLP encoder; cheap)"""
-    run_dir: str = "runs"  # the folder that holds run folders
-    resume: Optional[str] = None  # a run folder to continue with its args.json (only RESUME_FLAGS beside it)
-    track: bool = False  # log to Weights & Biases as well (needs `pip install wandb`)
-    wandb_project: str = "rama"  # the W&B project
-    eval_every: int = 10_000  # run evaluation episodes (no exploration noise) every this many environment steps
-    eval_episodes: int = 1  # evaluation episodes per evaluation
-    capture_video: bool = False  # save GIFs of eval episodes and of open-loop world-model predictions under `videos/`
-    plain_log: bool = False  # print plain lines instead of progress bars (always so without a terminal on stderr)
+    run_dir: str = "runs"
+    """the folder that holds run folders"""
+    resume: Optional[str] = None
+    """a run folder to continue with its args.json (only RESUME_FLAGS beside it)"""
+    track: bool = False
+    """log to Weights & Biases as well (needs `pip install wandb`)"""
+    wandb_project: str = "rama"
+    """the W&B project"""
+    eval_every: int = 10_000
+    """run evaluation episodes (no exploration noise) every this many environment steps"""
+    eval_episodes: int = 1
+    """evaluation episodes per evaluation"""
+    capture_video: bool = False
+    """save GIFs of eval episodes and of open-loop world-model predictions under `videos/`"""
+    plain_log: bool = False
+    """print plain lines instead of progress bars (always so without a terminal on stderr)"""
     log_interval_seconds: float = 60.0
     """plain-log mode: a progress line at least this often inside a round of updates (0: after every update)"""
 
     # Speed (none of these changes what is learned, up to floating-point rounding)
     precision: Literal["fp32", "bf16"] = "fp32"
     """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
-    channels_last: bool = True  # conv weights and activations in channels-last layout (faster convs on CPU and GPU)
-    compile: bool = False  # torch.compile the RSSM steps (worth it on CUDA; the first updates pay the compile time)
-    prefetch: bool = True  # sample (and pin) the next batch in a background thread while the current update trains
-    num_envs: int = 1  # environments collecting in parallel (subprocesses via gymnasium's AsyncVectorEnv when > 1)
+    channels_last: bool = True
+    """conv weights and activations in channels-last layout (faster convs on CPU and GPU)"""
+    compile: bool = False
+    """torch.compile the RSSM steps (worth it on CUDA; the first updates pay the compile time)"""
+    prefetch: bool = True
+    """sample (and pin) the next batch in a background thread while the current update trains"""
+    num_envs: int = 1
+    """environments collecting in parallel (subprocesses via gymnasium's AsyncVectorEnv when > 1)"""
 
     # Environment
-    action_repeat: int = 2  # each action is repeated this many environment steps
-    time_limit: Optional[int] = None  # environment steps per episode; None = 1000 for DMC, 500 for the kitchen
-    image_size: int = 64  # rendered image height and width
-    camera: int = -1  # camera id; -1 = the suite default used by Dreamer (0, or 2 for quadruped)
-    kitchen_joints: Literal[3, 7] = 3  # active kitchen-robot joints (3: pan, lift, elbow, as in the paper; or all 7)
+    action_repeat: int = 2
+    """each action is repeated this many environment steps"""
+    time_limit: Optional[int] = None
+    """environment steps per episode; None = 1000 for DMC, 500 for the kitchen"""
+    image_size: int = 64
+    """rendered image height and width"""
+    camera: int = -1
+    """camera id; -1 = the suite default used by Dreamer (0, or 2 for quadruped)"""
+    kitchen_joints: Literal[3, 7] = 3
+    """active kitchen-robot joints (3: pan, lift, elbow, as in the paper; or all 7)"""
 
     # World model
-    deter_size: int = 200  # RSSM deterministic (GRU) state size
-    stoch_size: int = 30  # RSSM stochastic (Gaussian) state size
-    hidden_size: int = 200  # RSSM hidden layer size
-    cnn_depth: int = 32  # channel multiplier of the conv encoder and decoder
-    mlp_units: int = 400  # units of the reward, value and actor MLPs (and of the state encoder/decoder)
-    free_nats: Optional[float] = None  # KL free nats; None = 3 for pixels (the paper), 0 for state (see README)
-    obs_std: Optional[float] = None  # std of p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)
-    kl_scale: float = 1.0  # weight of the KL term
-    model_lr: float = 6e-4  # Adam learning rate of the world model
-    grad_clip: float = 100.0  # gradient norm clipping of every optimiser
-    adam_eps: float = 1e-4  # epsilon of every Adam optimiser (Dreamer v1's 1e-4; torch's default is 1e-8)
+    deter_size: int = 200
+    """RSSM deterministic (GRU) state size"""
+    stoch_size: int = 30
+    """RSSM stochastic (Gaussian) state size"""
+    hidden_size: int = 200
+    """RSSM hidden layer size"""
+    cnn_depth: int = 32
+    """channel multiplier of the conv encoder and decoder"""
+    mlp_units: int = 400
+    """units of the reward, value and actor MLPs (and of the state encoder/decoder)"""
+    free_nats: Optional[float] = None
+    """KL free nats; None = 3 for pixels (the paper), 0 for state (see README)"""
+    obs_std: Optional[float] = None
+    """std of p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)"""
+    kl_scale: float = 1.0
+    """weight of the KL term"""
+    model_lr: float = 6e-4
+    """Adam learning rate of the world model"""
+    grad_clip: float = 100.0
+    """gradient norm clipping of every optimiser"""
+    adam_eps: float = 1e-4
+    """epsilon of every Adam optimiser (Dreamer v1's 1e-4; torch's default is 1e-8)"""
     imagine_after_model_step: bool = False
     """step the world model before imagining (off: Dreamer v1 computes all three losses with the same parameters)"""
 
     # Actor-critic
-    actor_lr: float = 8e-5  # Adam learning rate of the actor
-    value_lr: float = 8e-5  # Adam learning rate of the value
-    horizon: Optional[int] = None  # imagination horizon; None = 15, or 25 for the kitchen (the paper's settings)
-    gamma: float = 0.99  # discount
-    return_lambda: float = 0.95  # λ of the λ-returns
-    expl_noise: float = 0.3  # std of the Gaussian noise added to actions while collecting
-    actor_init_std: float = 5.0  # the actor's std before training (tanh-normal)
-    actor_min_std: float = 1e-4  # the actor's minimal std
-    actor_mean_scale: float = 5.0  # the actor's pre-tanh mean is squashed to [-scale, scale]
+    actor_lr: float = 8e-5
+    """Adam learning rate of the actor"""
+    value_lr: float = 8e-5
+    """Adam learning rate of the value"""
+    horizon: Optional[int] = None
+    """imagination horizon; None = 15, or 25 for the kitchen (the paper's settings)"""
+    gamma: float = 0.99
+    """discount"""
+    return_lambda: float = 0.95
+    """λ of the λ-returns"""
+    expl_noise: float = 0.3
+    """std of the Gaussian noise added to actions while collecting"""
+    actor_init_std: float = 5.0
+    """the actor's std before training (tanh-normal)"""
+    actor_min_std: float = 1e-4
+    """the actor's minimal std"""
+    actor_mean_scale: float = 5.0
+    """the actor's pre-tanh mean is squashed to [-scale, scale]"""
 
     # Replay
-    batch_size: int = 50  # n: chunks per batch
-    seq_len: int = 50  # L: steps per chunk
-    updates_per_episode: int = 100  # C: updates between two collected episodes
-    prefill_episodes: int = 1  # S: random-action episodes collected before training (the paper: 1)
+    batch_size: int = 50
+    """n: chunks per batch"""
+    seq_len: int = 50
+    """L: steps per chunk"""
+    updates_per_episode: int = 100
+    """C: updates between two collected episodes"""
+    prefill_episodes: int = 1
+    """S: random-action episodes collected before training (the paper: 1)"""
 
     # Addressing (RAMa)
-    prior_dirs: Tuple[str, ...] = ()  # episode folders of earlier runs (or their run folders): the multitask buffer M
-    prior_min_return: Optional[float] = None  # least return of a kept prior episode (the paper: 600 for walker walk)
-    prior_max_episodes: int = 1000  # K: prior episodes kept, subsampled at random
-    address_prob: float = 0.5  # p: probability that a world-model batch mixes in multitask chunks
-    current_fraction: float = 0.5  # β: fraction of a mixed batch that stays current-task chunks
-    address_batch: int = 50  # m: multitask chunks scored against the current chunks per addressing update
-    address_lr: float = 1e-3  # Adam learning rate of the addressing model
-    address_grad_clip: float = 100.0  # gradient norm clipping of the addressing model
-    address_units: int = 200  # GRU size of the addressing model = size of a trajectory embedding
-    address_cnn_depth: int = 16  # channel multiplier of the addressing model's own conv encoder
-    address_imagine_starts: int = 0  # VRAMa: imagine from this many random posteriors of the picks; 0 = all (the paper)
+    prior_dirs: Tuple[str, ...] = ()
+    """episode folders of earlier runs (or their run folders): the multitask buffer M"""
+    prior_min_return: Optional[float] = None
+    """least return of a kept prior episode (the paper: 600 for walker walk)"""
+    prior_max_episodes: int = 1000
+    """K: prior episodes kept, subsampled at random"""
+    address_prob: float = 0.5
+    """p: probability that a world-model batch mixes in multitask chunks"""
+    current_fraction: float = 0.5
+    """β: fraction of a mixed batch that stays current-task chunks"""
+    address_batch: int = 50
+    """m: multitask chunks scored against the current chunks per addressing update"""
+    address_lr: float = 1e-3
+    """Adam learning rate of the addressing model"""
+    address_grad_clip: float = 100.0
+    """gradient norm clipping of the addressing model"""
+    address_units: int = 200
+    """GRU size of the addressing model = size of a trajectory embedding"""
+    address_cnn_depth: int = 16
+    """channel multiplier of the addressing model's own conv encoder"""
+    address_imagine_starts: int = 0
+    """VRAMa: imagine from this many random posteriors of the picks; 0 = all (the paper)"""
     vrama_select: Literal["embeddings", "frames"] = "embeddings"
     """VRAMa: what the straight-through one-hots multiply: the chunks' encodings or their frames (see README)"""
     vrama_reduction: Literal["mean", "sum"] = "mean"
     """VRAMa: "mean" = γ^t-weighted mean of V_λ (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
-    address_layer_norm: bool = False  # layer-normalise f_φ's per-step input layer (not in the paper; see README)
-    address_reward_input: bool = False  # feed f_φ the stored reward of each step too (not in the paper)
-    address_stop_grad_x: Optional[bool] = None  # no gradient through f(x); None = on for rrama, rbrama; off for vrama
-    address_standardize: bool = True  # standardise the REINFORCE advantages over the batch (as the authors' code does)
-    address_refresh: int = 100  # recompute the candidates' embeddings D every this many updates (C in Algorithm 2)
-    address_candidates: int = 10_000  # most candidate chunks of M in D (a random subset of M's chunks at each refresh)
-    wm_on_addressed: bool = True  # train the world model on addressed chunks too (off: they only start imagination)
-    address_plot_every: int = 10  # draw the addressing-probabilities picture every this many episodes
+    address_layer_norm: bool = False
+    """layer-normalise f_φ's per-step input layer (not in the paper; see README)"""
+    address_reward_input: bool = False
+    """feed f_φ the stored reward of each step too (not in the paper)"""
+    address_stop_grad_x: Optional[bool] = None
+    """no gradient through f(x); None = on for rrama, rbrama; off for vrama"""
+    address_standardize: bool = True
+    """standardise the REINFORCE advantages over the batch (as the authors' code does)"""
+    address_refresh: int = 100
+    """recompute the candidates' embeddings D every this many updates (C in Algorithm 2)"""
+    address_candidates: int = 10_000
+    """most candidate chunks of M in D (a random subset of M's chunks at each refresh)"""
+    wm_on_addressed: bool = True
+    """train the world model on addressed chunks too (off: they only start imagination)"""
+    address_plot_every: int = 10
+    """draw the addressing-probabilities picture every this many episodes"""
 
 
 def resolve_defaults(args: Args) -> Args:
