@@ -94,7 +94,7 @@ class Args:
     eval_episodes: int = 1
     """evaluation episodes per evaluation"""
     capture_video: bool = False
-    """save GIFs of eval episodes and of open-loop world-model predictions under `videos/`"""
+    """save GIFs of eval episodes and (pixels) of open-loop world-model predictions under `videos/`"""
     plain_log: bool = False
     """print plain lines instead of progress bars (always so without a terminal on stderr)"""
     log_interval_seconds: float = 60.0

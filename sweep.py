@@ -161,29 +161,27 @@ def is_done(run: Run) -> bool:
     return os.path.exists(os.path.join(run.folder, "DONE")) or os.path.exists(os.path.join(run.results, "args.json"))
 
 
-def to_run(runs: list) -> list:
-    """The runs not done, plus the done priors they need whose run folders are not here (done on another machine,
-    with only their results committed): those run again, since their episodes are the prior data."""
+def with_priors(runs: list, names: set, needed=lambda run: True) -> list:
+    """The runs named, plus (recursively) the priors they depend on for which needed(prior) holds, in spec order."""
     by_name = {r.name: r for r in runs}
-    todo = {r.name for r in runs if not is_done(r)}
-    while True:
-        missing = {d for n in todo for d in by_name[n].deps if d not in todo and not run_folder(by_name[d].folder)}
-        if not missing:
-            return [r for r in runs if r.name in todo]
-        todo |= missing
-
-
-def select(runs: list, patterns: list) -> list:
-    """The runs whose names match a pattern, and (recursively) the priors they depend on, in spec order."""
-    by_name = {r.name: r for r in runs}
-    chosen = {r.name for r in runs if any(fnmatch.fnmatchcase(r.name, p) for p in patterns)}
-    stack = list(chosen)
+    chosen, stack = set(names), list(names)
     while stack:
         for dep in by_name[stack.pop()].deps:
-            if dep not in chosen:
+            if dep not in chosen and needed(by_name[dep]):
                 chosen.add(dep)
                 stack.append(dep)
     return [r for r in runs if r.name in chosen]
+
+
+def to_run(runs: list) -> list:
+    """The runs not done, plus the done priors they need whose run folders are not here (done on another machine,
+    with only their results committed): those run again, since their episodes are the prior data."""
+    return with_priors(runs, {r.name for r in runs if not is_done(r)}, lambda prior: not run_folder(prior.folder))
+
+
+def select(runs: list, patterns: list) -> list:
+    """The runs whose names match a pattern, and the priors they depend on."""
+    return with_priors(runs, {r.name for r in runs if any(fnmatch.fnmatchcase(r.name, p) for p in patterns)})
 
 
 def command(run: Run, python: str = None) -> list:
@@ -353,7 +351,7 @@ def main():
     if args.dry_run:
         for run in runs:
             try:
-                state = "done" if is_done(run) else "resume" if run_folder(run.folder) else "new"
+                state = "done" if run not in todo else "resume" if run_folder(run.folder) else "new"
                 print(f"{run.name} [{state}]" + ("" if state == "done" else f": {shlex.join(command(run, 'python'))}"))
             except RunFailed as e:  # a folder that holds two runs
                 print(f"{run.name} [error]: {e}")
