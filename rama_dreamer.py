@@ -102,8 +102,6 @@ class Args:
     """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
     channels_last: bool = True
     """conv weights and activations in channels-last layout (faster convs on CPU and GPU)"""
-    compile: bool = False
-    """torch.compile the RSSM steps (worth it on CUDA; the first updates pay the compile time)"""
     prefetch: bool = True
     """sample (and pin) the next batch in a background thread while the current update trains"""
     num_envs: int = 1
@@ -274,7 +272,10 @@ def check_args(args: Args) -> None:
                          f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
     for env_id in task_list(args):
         make_env_spec(env_id)  # raises a UsageError naming --env-id
-    check_precision(args.precision, resolve_device(args.device))
+    native, found = native_bf16(resolve_device(args.device))
+    if args.precision == "bf16" and not native:  # one line that says why, instead of a run 13x slower
+        raise UsageError(f"--precision bf16: {found}, so bf16 would be emulated (about 13x slower than fp32 on such "
+                         f"a CPU); use --precision fp32")
 
 
 def task_list(args: Args) -> list:
@@ -289,7 +290,7 @@ ADDRESSED_METHODS = ("vrama", "rrama", "rbrama")
 # the flags that may be given beside --resume (they change neither the networks nor what was collected); the other
 # flags come from the run's args.json
 RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
-                "plain_log", "log_interval_seconds", "precision", "channels_last", "compile", "prefetch")
+                "plain_log", "log_interval_seconds", "precision", "channels_last", "prefetch")
 
 
 class UsageError(Exception):
@@ -713,24 +714,11 @@ class ConvDecoder(nn.Module):
         return x.float().unflatten(0, feat.shape[:2])
 
 
-class MLPEncoder(nn.Module):
-    """State observations: (B, T, D) -> (B, T, units)."""
-
-    def __init__(self, obs_size: int, units: int):
-        super().__init__()
-        self.net, self.embed_size = nn.Sequential(MLP(obs_size, units, 2, units), nn.ELU()), units
-
-    def forward(self, obs):
-        return self.net(obs)
-
-
-class MLPDecoder(nn.Module):
-    def __init__(self, feat_size: int, obs_size: int, units: int):
-        super().__init__()
-        self.net = MLP(feat_size, units, 2, obs_size)
-
-    def forward(self, feat):
-        return self.net(feat)
+def mlp_encoder(obs_size: int, units: int) -> nn.Module:
+    """State observations: (B, T, D) -> (B, T, units); the decoder is a plain MLP back to D."""
+    encoder = nn.Sequential(MLP(obs_size, units, 2, units), nn.ELU())
+    encoder.embed_size = units
+    return encoder
 
 
 def set_speed_options(module: nn.Module, precision: str, channels_last: bool) -> nn.Module:
@@ -816,11 +804,11 @@ class WorldModel(nn.Module):
     def __init__(self, obs_shape, action_size, args: Args):
         super().__init__()
         pixels = len(obs_shape) == 3
-        self.encoder = ConvEncoder(obs_shape, args.cnn_depth) if pixels else MLPEncoder(obs_shape[0], args.mlp_units)
+        self.encoder = ConvEncoder(obs_shape, args.cnn_depth) if pixels else mlp_encoder(obs_shape[0], args.mlp_units)
         self.rssm = RSSM(action_size, self.encoder.embed_size, args.stoch_size, args.deter_size, args.hidden_size)
         feat = self.rssm.feat_size
         self.decoder = (ConvDecoder(feat, obs_shape, args.cnn_depth) if pixels
-                        else MLPDecoder(feat, obs_shape[0], args.mlp_units))
+                        else MLP(feat, args.mlp_units, 2, obs_shape[0]))
         self.reward = MLP(feat, args.mlp_units, 2, 1)
 
 
@@ -860,7 +848,7 @@ class AddressNet(nn.Module):
     def __init__(self, obs_shape, action_size: int, units: int, cnn_depth: int, layer_norm: bool = False,
                  reward_input: bool = False):
         super().__init__()
-        self.encoder = ConvEncoder(obs_shape, cnn_depth) if len(obs_shape) == 3 else MLPEncoder(obs_shape[0], units)
+        self.encoder = ConvEncoder(obs_shape, cnn_depth) if len(obs_shape) == 3 else mlp_encoder(obs_shape[0], units)
         self.reward_input = reward_input
         self.inp = nn.Sequential(nn.Linear(self.encoder.embed_size + action_size + int(reward_input), units),
                                  nn.LayerNorm(units) if layer_norm else nn.Identity(), nn.ELU())
@@ -946,11 +934,6 @@ def imagined_returns(wm: WorldModel, value_net: nn.Module, feats, gamma: float, 
     return returns, weights, value
 
 
-def flatten_states(states: dict) -> dict:
-    """(B, T, ...) states -> (B*T, ...) detached start states for imagination."""
-    return {k: v.detach().flatten(0, 1) for k, v in states.items()}
-
-
 class Freeze:
     """Turn off gradients of some modules inside a block: actor and value losses must not train the model."""
 
@@ -987,12 +970,6 @@ class Agent(nn.Module):
                            args.actor_mean_scale)
         self.value = MLP(feat, args.mlp_units, 3, 1)
         set_speed_options(self, args.precision, args.channels_last)
-        if args.compile:  # the hot loops: 50 posterior steps per chunk, 15 imagination steps per start
-            import torch._functorch.config as functorch_config
-
-            functorch_config.donated_buffer = False  # the actor's backward retains the graph for the value's
-            self.wm.rssm.img_step = torch.compile(self.wm.rssm.img_step)
-            self.wm.rssm.obs_step = torch.compile(self.wm.rssm.obs_step)
         self.model_opt = torch.optim.Adam(self.wm.parameters(), lr=args.model_lr, eps=args.adam_eps)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr, eps=args.adam_eps)
         self.value_opt = torch.optim.Adam(self.value.parameters(), lr=args.value_lr, eps=args.adam_eps)
@@ -1020,7 +997,8 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
 
     t0 = time.perf_counter()
     with Freeze(agent.wm):  # actor gradients flow through the model, but do not train it
-        feats = imagine(agent.wm, agent.actor, flatten_states(post), args.horizon)  # (H, B*T, F)
+        start = {k: v.detach().flatten(0, 1) for k, v in post.items()}  # (B*T, ...): every posterior
+        feats = imagine(agent.wm, agent.actor, start, args.horizon)  # (H, B*T, F)
     # one value pass serves both losses: the actor's backward reaches the actor only, the value's the value only
     returns, weights, value = imagined_returns(agent.wm, agent.value, feats, args.gamma, args.return_lambda)
     actor_loss = -(weights * returns).mean()
@@ -1170,11 +1148,6 @@ class Addressing:
         return torch.multinomial(self.probs(x), 1).squeeze(-1).cpu().numpy()
 
 
-def every(n: int, count: int) -> bool:
-    """True on every n-th count (count 0 included)."""
-    return count % n == 0
-
-
 def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
            device, task_name: str, updates_done: int) -> dict:
     """One update of Algorithm 2 given n current-task chunks x_i ~ M_τ (torch, on device): (a) the addressing step,
@@ -1186,7 +1159,7 @@ def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addres
 
     if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
         t0 = time.perf_counter()
-        if addressing.D is None or every(args.address_refresh, updates_done):
+        if addressing.D is None or updates_done % args.address_refresh == 0:
             addressing.refresh(multitask, seq_len, args.address_candidates, rng)
             metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
         m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
@@ -1455,42 +1428,19 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def cpu_flags() -> list:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
-    except OSError:
-        return []
-
-
-def native_bf16(device: torch.device) -> Tuple[bool, str]:
+def native_bf16(device: torch.device, cpuinfo: str = "/proc/cpuinfo") -> Tuple[bool, str]:
     """Whether the device multiplies bf16 matrices in hardware, and what was found. Without it (a CPU with AVX2
     only) bf16 is emulated: measured 13x slower than fp32 at the paper's size."""
     if device.type == "cuda":
         return torch.cuda.is_bf16_supported(), f"CUDA {torch.cuda.get_device_name(device)}"
-    found = [flag for flag in ("avx512_bf16", "amx_bf16") if flag in cpu_flags()]
+    try:
+        with open(cpuinfo) as f:
+            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
+    except OSError:  # not Linux: no flags to read, so bf16 counts as emulated
+        flags = []
+    found = [flag for flag in ("avx512_bf16", "amx_bf16") if flag in flags]
     return bool(found), f"CPU {torch.backends.cpu.get_cpu_capability()}" + (f" with {'+'.join(found)}" if found else
                                                                            ", no avx512_bf16 or amx_bf16")
-
-
-def check_precision(precision: str, device: torch.device) -> None:
-    """--precision bf16 only where bf16 is fast: elsewhere one line that says why, instead of a run 13x slower."""
-    native, found = native_bf16(device)
-    if precision == "bf16" and not native:
-        raise UsageError(f"--precision bf16: {found}, so bf16 would be emulated (about 13x slower than fp32 on such "
-                         f"a CPU); use --precision fp32")
-
-
-def synthetic_replay(obs_shape, action_size, episodes: int, length: int, rng, task: str = "synthetic") -> Replay:
-    """Random episodes for benchmarks/bench_update.py and the tests: no environment needed."""
-    replay = Replay()
-    for _ in range(episodes):
-        shape = (length + 1, *obs_shape)
-        obs = rng.integers(0, 256, shape, dtype=np.uint8) if len(obs_shape) == 3 else rng.normal(size=shape)
-        replay.add({"obs": obs, "action": rng.uniform(-1, 1, (length + 1, action_size)).astype(np.float32),
-                    "reward": rng.uniform(0, 1, length + 1).astype(np.float32),
-                    "terminal": np.zeros(length + 1, bool), "task": task})
-    return replay
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1513,12 +1463,12 @@ def resolve_run(args: Args, given: set):
     try:
         with open(args_path) as f:
             saved = json.load(f)
-        saved.setdefault("obs_std", 1.0)  # runs saved before --obs-std existed had a unit-variance decoder
-        saved.setdefault("address_reward_input", True)  # and f_φ read the stored rewards before the flag existed
-        saved.setdefault("adam_eps", 1e-8)  # and Adam had torch's epsilon,
-        saved.setdefault("imagine_after_model_step", True)  # and the model stepped before imagination
-        valid = {f.name for f in dataclasses.fields(Args)}
-        resumed = dataclasses.replace(Args(**{k: v for k, v in saved.items() if k in valid}), resume=args.resume,
+        missing = sorted(flag(f.name) for f in dataclasses.fields(Args) if f.name not in saved)
+        if missing:  # a default filled in here could differ from what the run was trained with
+            raise UsageError(f"saved by an older version of this script (no {', '.join(missing)}); resume it with that "
+                             f"version")
+        fields = {f.name: saved[f.name] for f in dataclasses.fields(Args)}  # flags since removed are dropped
+        resumed = dataclasses.replace(Args(**fields), resume=args.resume,
                                       **{k: getattr(args, k) for k in given & set(RESUME_FLAGS)})
         check_args(resumed)
     except (ValueError, TypeError, AttributeError, UsageError) as e:  # JSONDecodeError is a ValueError
@@ -1660,7 +1610,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     batch = to_torch(replay.sample(4, args.seq_len, rng), device)
                     write_gif(os.path.join(task_path, "videos", f"openloop_{env_steps:08d}.gif"),
                               open_loop_frames(agent.wm, batch))
-                if addressing is not None and addressing.D is not None and every(args.address_plot_every, len(replay)):
+                if addressing is not None and addressing.D is not None and len(replay) % args.address_plot_every == 0:
                     from report import addressing_figure  # the plotting lives in report.py
 
                     x = to_torch(replay.sample(16, args.seq_len, rng), device)

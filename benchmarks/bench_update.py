@@ -6,7 +6,7 @@ synthetic episodes (no environment in the timing), on the CPU and on CUDA when p
 per second with the agent acting, in 1 env and in --num-envs envs. The first line names the date, the machine, torch,
 the thread count, the speed flags and what was found about native bf16 on each device timed.
 
-Every flag of the script is accepted too (--precision, --channels-last, --compile, --prefetch, --device, --obs-type,
+Every flag of the script is accepted too (--precision, --channels-last, --prefetch, --device, --obs-type,
 --image-size, --env-id, --num-envs, --address-imagine-starts, --vrama-select, network sizes, ...).
 
 Run (from the repository root):
@@ -84,6 +84,18 @@ def cpu_name() -> str:
             return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
     except (OSError, StopIteration):
         return platform.processor()
+
+
+def synthetic_replay(replay, obs_shape, action_size: int, episodes: int, length: int, rng, task: str = "synthetic"):
+    """Adds random episodes (images uint8 or state vectors, T+1 steps each) to a script's Replay: no environment
+    needed. The tests use it too."""
+    for _ in range(episodes):
+        shape = (length + 1, *obs_shape)
+        obs = rng.integers(0, 256, shape, dtype=np.uint8) if len(obs_shape) == 3 else rng.normal(size=shape)
+        replay.add({"obs": obs, "action": rng.uniform(-1, 1, (length + 1, action_size)).astype(np.float32),
+                    "reward": rng.uniform(0, 1, length + 1).astype(np.float32),
+                    "terminal": np.zeros(length + 1, bool), "task": task})
+    return replay
 
 
 def time_collection(S, args, device: torch.device) -> None:
@@ -169,15 +181,17 @@ def main(S, options: Options, args) -> None:
     print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
           f"{torch.__version__} | threads {torch.get_num_threads()}"
           + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "")
-          + f" | precision {args.precision} | channels-last {args.channels_last} | compile {args.compile}"
+          + f" | precision {args.precision} | channels-last {args.channels_last}"
           + "".join(f" | {d} bf16: {S.native_bf16(torch.device(d))[1]}" for d in devices), flush=True)
-    for device_name in devices:
-        S.check_precision(args.precision, torch.device(device_name))
+    for device_name in devices:  # check_args checked --device; `auto` times the CPU as well
+        native, found = S.native_bf16(torch.device(device_name))
+        if args.precision == "bf16" and not native:
+            raise S.UsageError(f"--precision bf16: {found}, so bf16 would be emulated; use --precision fp32")
     state_shape, action_size = STATE_AND_ACTION[options.script]
     obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else state_shape
     rng = np.random.default_rng(args.seed)
-    replay = S.synthetic_replay(obs_shape, action_size, episodes=4, length=500, rng=rng, task="current")
-    multitask = S.synthetic_replay(obs_shape, action_size, episodes=4, length=500, rng=rng, task="prior")
+    replay = synthetic_replay(S.Replay(), obs_shape, action_size, episodes=4, length=500, rng=rng, task="current")
+    multitask = synthetic_replay(S.Replay(), obs_shape, action_size, episodes=4, length=500, rng=rng, task="prior")
     for episode in replay.episodes:
         multitask.add(episode)
     if options.profile:

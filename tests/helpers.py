@@ -19,3 +19,11 @@ def run_script(script: str, *flags, check=True, timeout=300):
     if check:
         assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
+
+
+def synthetic_replay(obs_shape, action_size: int, episodes: int, length: int, rng, task: str = "synthetic"):
+    """A rama_dreamer Replay of random episodes (the benchmark's generator): no environment needed."""
+    import rama_dreamer
+    from benchmarks.bench_update import synthetic_replay as add_random_episodes
+
+    return add_random_episodes(rama_dreamer.Replay(), obs_shape, action_size, episodes, length, rng, task)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import rama_dreamer as rd
+from helpers import synthetic_replay
 
 
 def test_lambda_return_hand_case():
@@ -168,7 +169,7 @@ def test_obs_std_default_depends_on_the_observations():
     torch.manual_seed(0)
     wm = rd.WorldModel((5,), 2, args)
     rng = np.random.default_rng(0)
-    batch = rd.to_torch(rd.synthetic_replay((5,), 2, 1, 10, rng).sample(2, 4, rng), "cpu")
+    batch = rd.to_torch(synthetic_replay((5,), 2, 1, 10, rng).sample(2, 4, rng), "cpu")
     torch.manual_seed(1)  # the same posterior samples in both calls
     unit = rd.world_model_loss(wm, batch, 0.0, 1.0, obs_std=1.0)[2]["losses/obs_loglik"]
     torch.manual_seed(1)
@@ -184,7 +185,7 @@ def test_actor_loss_trains_only_the_actor():
                    batch_size=2, seq_len=4)
     agent = rd.Agent((5,), 2, args)
     rng = np.random.default_rng(0)
-    replay = rd.synthetic_replay((5,), 2, episodes=1, length=10, rng=rng)
+    replay = synthetic_replay((5,), 2, episodes=1, length=10, rng=rng)
     batch = rd.to_torch(replay.sample(2, 4, rng), "cpu")
     before = {k: v.clone() for k, v in agent.state_dict().items()}
     # with zero model and value learning rates, only the actor may move
@@ -209,9 +210,14 @@ def test_free_nats_default_depends_on_the_observations():
     assert torch.all(clamped == 0) and torch.all(free != 0)
 
 
-def test_resume_of_a_run_saved_before_obs_std_keeps_the_unit_decoder(tmp_path):
+def test_resume_of_a_run_saved_by_an_older_version_is_refused(tmp_path):
+    """An args.json without a flag of today's script would get that flag's default, which the run may not have been
+    trained with (--obs-std was 1 before it existed, 0.1 now for state): one line naming the flag instead."""
     saved = dataclasses.asdict(rd.resolve_defaults(rd.Args(obs_type="state")))
-    del saved["obs_std"]  # an args.json written before the flag existed
     (tmp_path / "args.json").write_text(json.dumps(saved))
     args, _ = rd.resolve_run(rd.Args(resume=str(tmp_path)), {"resume"})
-    assert args.obs_type == "state" and args.obs_std == 1.0
+    assert args.obs_type == "state" and args.obs_std == 0.1
+    del saved["obs_std"]  # an args.json written before the flag existed
+    (tmp_path / "args.json").write_text(json.dumps(saved))
+    with pytest.raises(rd.UsageError, match=r"args.json: saved by an older version .*--obs-std"):
+        rd.resolve_run(rd.Args(resume=str(tmp_path)), {"resume"})

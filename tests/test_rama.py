@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import rama_dreamer as rd
-from helpers import TINY, run_script
+from helpers import TINY, run_script, synthetic_replay
 
 SMALL = dict(deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=3.0, obs_std=1.0,
              batch_size=4, seq_len=5, address_units=8, address_cnn_depth=2, address_batch=6)
@@ -51,7 +51,7 @@ def test_rbrama_subtracts_the_predicted_reward_of_x(monkeypatch):
     agent = rd.Agent((3,), 2, args)
     addressing = rd.Addressing((3,), 2, args, "cpu")
     rng = np.random.default_rng(0)
-    replay = rd.synthetic_replay((3,), 2, 2, 20, rng)
+    replay = synthetic_replay((3,), 2, 2, 20, rng)
     x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
     rewards = {id(x["obs"]): torch.tensor([1.0, 2.0, 3.0, 4.0]), id(m["obs"]): torch.arange(6.0) * 10}
     monkeypatch.setattr(rd, "predicted_reward_sum", lambda wm, batch: rewards[id(batch["obs"])])
@@ -86,7 +86,7 @@ def test_vrama_gradient_reaches_phi_only():
     agent = rd.Agent((3,), 2, args)
     addressing = rd.Addressing((3,), 2, args, "cpu")
     rng = np.random.default_rng(0)
-    replay = rd.synthetic_replay((3,), 2, 2, 20, rng)
+    replay = synthetic_replay((3,), 2, 2, 20, rng)
     x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
     agent_before = {k: v.clone() for k, v in agent.state_dict().items()}
     phi_before = {k: v.clone() for k, v in addressing.net.state_dict().items()}
@@ -101,7 +101,7 @@ def test_vrama_start_subset_is_the_full_loss_when_it_covers_every_start():
     args = rd.Args(obs_type="state", method="vrama", **SMALL)
     agent = rd.Agent((3,), 2, args)
     rng = np.random.default_rng(0)
-    m = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(6, 5, rng), "cpu")
+    m = rd.to_torch(synthetic_replay((3,), 2, 2, 20, rng).sample(6, 5, rng), "cpu")
     logits = torch.zeros(4, 6, requires_grad=True)
     one_hot, _ = rd.straight_through_sample(logits)
     losses = []
@@ -121,7 +121,7 @@ def test_vrama_selecting_embeddings_or_frames_is_the_same_forward_pass(obs_shape
     args = rd.Args(obs_type="pixels" if len(obs_shape) == 3 else "state", cnn_depth=2, **SMALL)
     agent = rd.Agent(obs_shape, 2, args)
     rng = np.random.default_rng(0)
-    m = rd.to_torch(rd.synthetic_replay(obs_shape, 2, 2, 20, rng).sample(6, 5, rng), "cpu")
+    m = rd.to_torch(synthetic_replay(obs_shape, 2, 2, 20, rng).sample(6, 5, rng), "cpu")
     logits = torch.randn(4, 6, requires_grad=True)
     torch.manual_seed(1)
     one_hot, index = rd.straight_through_sample(logits)
@@ -157,7 +157,7 @@ def test_address_net_reads_actions_and_observations_not_rewards(obs_shape):
     assert not args.address_reward_input
     addressing = rd.Addressing(obs_shape, 2, args, "cpu")
     rng = np.random.default_rng(0)
-    batch = rd.to_torch(rd.synthetic_replay(obs_shape, 2, 2, 20, rng).sample(3, 5, rng), "cpu")
+    batch = rd.to_torch(synthetic_replay(obs_shape, 2, 2, 20, rng).sample(3, 5, rng), "cpu")
     emb = addressing.embed(batch)  # (3, units)
     for key, change in (("reward", 100.0), ("action", 0.5), ("obs", 0.5)):
         changed = {**batch, key: batch[key] + change}
@@ -179,7 +179,7 @@ def test_vrama_reduction_mean_and_sum(monkeypatch):
     args = rd.Args(obs_type="state", **SMALL)
     agent = rd.Agent((3,), 2, args)
     rng = np.random.default_rng(0)
-    m = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(2, 5, rng), "cpu")
+    m = rd.to_torch(synthetic_replay((3,), 2, 2, 20, rng).sample(2, 5, rng), "cpu")
     one_hot = torch.eye(2)
     mean = rd.vrama_loss(agent, one_hot, m, 3, 0.99, 0.95, reduction="mean")
     total = rd.vrama_loss(agent, one_hot, m, 3, 0.99, 0.95, reduction="sum")
@@ -192,7 +192,7 @@ def test_reward_mask_zeroes_masked_chunks():
     args = rd.Args(obs_type="state", **SMALL)
     wm = rd.Agent((3,), 2, args).wm
     rng = np.random.default_rng(0)
-    batch = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(4, 5, rng), "cpu")
+    batch = rd.to_torch(synthetic_replay((3,), 2, 2, 20, rng).sample(4, 5, rng), "cpu")
     mask = torch.tensor([1.0, 1.0, 0.0, 0.0])
     torch.manual_seed(0)
     _, _, full = rd.world_model_loss(wm, batch, 3.0, 1.0, reward_mask=mask)

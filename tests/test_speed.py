@@ -9,7 +9,7 @@ import torch
 import torch.nn as nn
 
 import rama_dreamer as rd
-from helpers import TINY, run_script
+from helpers import TINY, run_script, synthetic_replay
 
 PIXEL = dict(deter_size=16, stoch_size=4, hidden_size=16, mlp_units=16, cnn_depth=4, horizon=3, batch_size=3,
              seq_len=4, free_nats=3.0, obs_std=1.0)
@@ -17,7 +17,7 @@ PIXEL = dict(deter_size=16, stoch_size=4, hidden_size=16, mlp_units=16, cnn_dept
 
 def _pixel_batch(seed=0, n=3, seq_len=4):
     rng = np.random.default_rng(seed)
-    return rd.to_torch(rd.synthetic_replay((64, 64, 3), 2, 2, 10, rng).sample(n, seq_len, rng), "cpu")
+    return rd.to_torch(synthetic_replay((64, 64, 3), 2, 2, 10, rng).sample(n, seq_len, rng), "cpu")
 
 
 def _wm_loss(agent, batch, seed=0):
@@ -70,7 +70,7 @@ def test_one_value_pass_matches_the_two_pass_update():
     agent = rd.Agent((3,), 2, args)
     reference = copy.deepcopy(agent)
     rng = np.random.default_rng(0)
-    batch = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(3, 5, rng), "cpu")
+    batch = rd.to_torch(synthetic_replay((3,), 2, 2, 20, rng).sample(3, 5, rng), "cpu")
 
     torch.manual_seed(1)
     rd.train_step(agent, batch, args)
@@ -83,7 +83,7 @@ def test_one_value_pass_matches_the_two_pass_update():
     nn.utils.clip_grad_norm_(ref.wm.parameters(), args.grad_clip)
     ref.model_opt.step()
     with rd.Freeze(ref.wm, ref.value):
-        feats = rd.imagine(ref.wm, ref.actor, rd.flatten_states(post), args.horizon)
+        feats = rd.imagine(ref.wm, ref.actor, {k: v.detach().flatten(0, 1) for k, v in post.items()}, args.horizon)
         returns, weights, _ = rd.imagined_returns(ref.wm, ref.value, feats, args.gamma, args.return_lambda)
         actor_loss = -(weights * returns).mean()
     ref.actor_opt.zero_grad()
@@ -112,7 +112,7 @@ def test_dreamer_v1_order_imagines_with_the_model_before_its_step():
     reference, model_first = copy.deepcopy(agent), copy.deepcopy(agent)
     assert reference.model_opt.defaults["eps"] == 1e-4
     rng = np.random.default_rng(0)
-    batch = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(3, 5, rng), "cpu")
+    batch = rd.to_torch(synthetic_replay((3,), 2, 2, 20, rng).sample(3, 5, rng), "cpu")
     torch.manual_seed(1)
     rd.train_step(agent, batch, args)
 
@@ -120,7 +120,7 @@ def test_dreamer_v1_order_imagines_with_the_model_before_its_step():
     ref = reference
     loss, post, _ = rd.world_model_loss(ref.wm, batch, args.free_nats, args.kl_scale, obs_std=args.obs_std)
     with rd.Freeze(ref.wm, ref.value):
-        feats = rd.imagine(ref.wm, ref.actor, rd.flatten_states(post), args.horizon)
+        feats = rd.imagine(ref.wm, ref.actor, {k: v.detach().flatten(0, 1) for k, v in post.items()}, args.horizon)
         returns, weights, _ = rd.imagined_returns(ref.wm, ref.value, feats, args.gamma, args.return_lambda)
     value_pred = ref.value(feats[:-1].detach()).squeeze(-1)
     value_loss = -(weights * rd.gaussian_loglik(value_pred, returns.detach(), 0)).mean()
@@ -139,31 +139,10 @@ def test_dreamer_v1_order_imagines_with_the_model_before_its_step():
                               rd.nn.utils.parameters_to_vector(agent.actor.parameters()))
 
 
-@pytest.mark.slow
-def test_compiled_rssm_gives_the_eager_losses(monkeypatch):
-    import torch._inductor.config as inductor_config
-
-    monkeypatch.setattr(inductor_config, "fallback_random", True)  # compiled code draws eager's random numbers
-    args = rd.Args(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3,
-                   batch_size=3, seq_len=5, free_nats=0.0, obs_std=1.0)
-    torch.manual_seed(0)
-    eager = rd.Agent((3,), 2, args)
-    compiled = rd.Agent((3,), 2, rd.Args(**{**vars(args), "compile": True}))
-    compiled.load_state_dict(eager.state_dict())
-    rng = np.random.default_rng(0)
-    batch = rd.to_torch(rd.synthetic_replay((3,), 2, 2, 20, rng).sample(3, 5, rng), "cpu")
-    torch.manual_seed(1)
-    out_eager = rd.train_step(eager, batch, args)["metrics"]
-    torch.manual_seed(1)
-    out_compiled = rd.train_step(compiled, batch, args)["metrics"]
-    for key in ("losses/world_model", "losses/actor", "losses/value"):
-        assert torch.allclose(out_compiled[key], out_eager[key], rtol=1e-4, atol=1e-5), key
-
-
 @pytest.mark.parametrize("prefetch", [False, True])
 def test_chunk_sampler_same_batches_with_and_without_prefetch(prefetch):
     rng = np.random.default_rng(0)
-    replay = rd.synthetic_replay((3,), 2, 3, 20, rng)
+    replay = synthetic_replay((3,), 2, 3, 20, rng)
     reference = rd.ChunkSampler(replay, 4, 5, np.random.default_rng(7), "cpu", prefetch=False)
     sampler = rd.ChunkSampler(replay, 4, 5, np.random.default_rng(7), "cpu", prefetch=prefetch)
     got = [x for x, _ in sampler.batches(3)]
@@ -225,18 +204,21 @@ def test_script_with_fast_paths_runs(tmp_path):
 
 @pytest.mark.parametrize("flags, native", [(["fpu", "avx2"], False), (["avx2", "avx512_bf16"], True),
                                            (["amx_bf16"], True)])
-def test_bf16_is_refused_without_native_support(monkeypatch, flags, native):
+def test_bf16_is_refused_without_native_support(monkeypatch, tmp_path, flags, native):
     """A CPU without AVX-512 BF16 or AMX emulates bf16 (13x slower than fp32): --precision bf16 is refused with one
     line naming the flag and suggesting fp32, before anything runs. fp32 is never refused."""
-    monkeypatch.setattr(rd, "cpu_flags", lambda: flags)
-    cpu = torch.device("cpu")
-    assert rd.native_bf16(cpu)[0] == native
-    rd.check_precision("fp32", cpu)
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text("processor\t: 0\nflags\t\t: " + " ".join(flags) + "\n")
+    found = rd.native_bf16(torch.device("cpu"), str(cpuinfo))
+    assert found[0] == native
+    monkeypatch.setattr(rd, "native_bf16", lambda device: found)
+    args = rd.resolve_defaults(rd.Args(env_id="dmc/cartpole-balance", device="cpu"))
+    rd.check_args(args)
     if native:
-        rd.check_precision("bf16", cpu)
+        rd.check_args(dataclasses.replace(args, precision="bf16"))
     else:
         with pytest.raises(rd.UsageError, match=r"--precision bf16: CPU .*no avx512_bf16.*use --precision fp32"):
-            rd.check_precision("bf16", cpu)
+            rd.check_args(dataclasses.replace(args, precision="bf16"))
 
 
 @pytest.mark.slow
