@@ -1,8 +1,8 @@
 """Run an experiment grid (cells x methods x seeds, with dependencies) of the training scripts, from a TOML spec.
 
-    python sweep.py sweeps/same_task_cartpole.toml --dry-run             # print each run's command, run nothing
-    python sweep.py sweeps/same_task_cartpole.toml --workers 2           # 2 runs at a time, OMP_NUM_THREADS = cores / 2
-    python sweep.py sweeps/same_task_cartpole.toml --ray-address auto    # each run a Ray task on a running cluster
+    python sweep.py sweeps/cartpole_tables.toml --dry-run                # print each run's command, run nothing
+    python sweep.py sweeps/cartpole_tables.toml --workers 2              # 2 runs at a time, OMP_NUM_THREADS = cores / 2
+    python sweep.py sweeps/cartpole_tables.toml --ray-address auto       # each run a Ray task on a running cluster
 
 The spec (see sweeps/*.toml) names the script, the flags common to every run, and cells. A cell has its own flags,
 its methods and seeds, and optionally `prior`: a cell above (`prior`) or one method's runs (`balance/dreamer`, which
@@ -19,7 +19,9 @@ script makes its own timestamped run folder inside). Rerunning the same sweep is
 After a run finishes, its args.json and metrics.jsonl are copied to results/<experiment>/<run>/ (small, meant to be
 committed; episodes and checkpoints stay in runs/). Then `DONE` is written and one progress line is printed.
 The script's output goes to <run folder>/log.txt. Changing a spec's flags does not restart done runs, and --resume
-keeps a run's saved flags: delete a run's folder to start it again.
+keeps a run's saved flags: delete a run's folder to start it again. One exception, to raise a grid's budget: a done
+run whose saved --total-steps is below the spec's is not done; it resumes with the spec's --total-steps (or, with
+only its results here, runs again from the start). The runs that used it as their prior are not rerun.
 
 Ray (`--ray-address auto` for a running cluster, `--ray-address local` to start a private local instance):
 - each run is one Ray task that asks for the spec's `cpus` and `gpus`;
@@ -157,8 +159,18 @@ def run_folder(folder: str):
 
 
 def is_done(run: Run) -> bool:
-    """Done here (DONE in its folder), or on another machine whose results were committed (results/ has args.json)."""
-    return os.path.exists(os.path.join(run.folder, "DONE")) or os.path.exists(os.path.join(run.results, "args.json"))
+    """Done here (DONE in its folder), or on another machine whose results were committed (results/ has args.json),
+    and trained for at least the spec's --total-steps (a raised budget makes a done run not done)."""
+    here, committed = os.path.exists(os.path.join(run.folder, "DONE")), os.path.join(run.results, "args.json")
+    if not here and not os.path.exists(committed):
+        return False
+    wanted = last_value(run.flags, "--total-steps")
+    try:
+        with open(os.path.join(run_folder(run.folder), "args.json") if here else committed) as f:
+            saved = json.load(f).get("total_steps")
+    except (OSError, ValueError):  # no readable args.json to compare with: the run counts as done
+        return True
+    return wanted is None or saved is None or saved >= int(wanted)
 
 
 def with_priors(runs: list, names: set, needed=lambda run: True) -> list:
@@ -188,9 +200,10 @@ def command(run: Run, python: str = None) -> list:
     """The script's command line: --resume the run folder if the run has started, else the spec's flags."""
     python = python or sys.executable  # looked up when called: on Ray, the worker's interpreter
     started = run_folder(run.folder)
-    if started:  # --resume reloads the saved flags; only --device comes from the command line
-        device = last_value(run.flags, "--device")
-        return [python, run.script, "--resume", started] + (["--device", device] if device else [])
+    if started:  # --resume reloads the saved flags; only --device and --total-steps come from the spec
+        device, steps = last_value(run.flags, "--device"), last_value(run.flags, "--total-steps")
+        return ([python, run.script, "--resume", started] + (["--device", device] if device else [])
+                + (["--total-steps", steps] if steps else []))
     # a prior run's own folder, or its sweep folder when it has not started yet (--dry-run only)
     priors = [run_folder(os.path.join(os.path.dirname(run.folder), d)) or os.path.join(os.path.dirname(run.folder), d)
               for d in run.deps] + run.prior_dirs
@@ -317,7 +330,7 @@ def run_ray(todo: list, address: str, retries: int) -> list:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("spec", help="a sweep spec (TOML), e.g. sweeps/same_task_cartpole.toml")
+    parser.add_argument("spec", help="a sweep spec (TOML), e.g. sweeps/cartpole_tables.toml")
     parser.add_argument("--workers", type=int, default=1, help="local backend: runs at a time (each gets cores / N threads)")
     parser.add_argument("--ray-address", default=None,
                         help="run on Ray: `auto` (a running cluster), `local` (start one here) or host:port")

@@ -66,7 +66,7 @@ method_flags.rrama_nosg = "--method rrama --address-stop-grad-x False"
                           "dmc/walker-walk", "--prior-min-return", "600", "--method", "rrama",
                           "--address-stop-grad-x", "False", "--seed", "2"]
     assert by_name["walk__dreamer__s2"].deps == []  # Dreamer takes no prior data, so it waits for nothing
-    # the command: --prior-dirs names the prior's folder; a started run is resumed, keeping --device
+    # the command: --prior-dirs names the prior's folder; a started run is resumed, keeping --device and the budget
     assert sweep.command(nosg, "python")[-2:] == ["--prior-dirs", os.path.join("R", "exp", "stand__dreamer__s2")]
     run = by_name["stand__dreamer__s1"]
     run.folder = str(tmp_path / "started")
@@ -75,7 +75,7 @@ method_flags.rrama_nosg = "--method rrama --address-stop-grad-x False"
     (tmp_path / "started" / "dmc_walker-stand__x__dreamer__1__123" / "args.json").write_text("{}")
     assert sweep.command(run, "python") == ["python", run.script, "--resume",
                                             str(tmp_path / "started" / "dmc_walker-stand__x__dreamer__1__123"),
-                                            "--device", "cpu"]
+                                            "--device", "cpu", "--total-steps", "1000"]
 
 
 def test_a_prior_made_once_serves_every_seed(tmp_path):
@@ -121,6 +121,31 @@ prior = "prior"
     os.makedirs(os.path.join(runs[0].folder, "dmc_run"))
     open(os.path.join(runs[0].folder, "dmc_run", "args.json"), "w").close()  # the prior's run folder is here
     assert names(sweep.to_run(runs)) == ["task__rrama__s1"]
+
+
+def test_a_raised_budget_resumes_done_runs_with_the_new_total_steps(tmp_path):
+    """Raising --total-steps in the spec makes a done run not done: it resumes with the spec's budget (the script
+    accepts --total-steps beside --resume); one with only committed results runs again. Lowering it changes nothing."""
+    text = '[cells.task]\nflags = "--total-steps 300 --device cpu"\n'
+    spec = write_spec(tmp_path, text)
+    here, elsewhere = (sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / r))[1][0] for r in ("a", "b"))
+    folder = os.path.join(here.folder, "dmc_run")
+    os.makedirs(folder)
+    with open(os.path.join(folder, "args.json"), "w") as f:
+        json.dump({"total_steps": 300}, f)
+    open(os.path.join(here.folder, "DONE"), "w").close()
+    os.makedirs(elsewhere.results)
+    with open(os.path.join(elsewhere.results, "args.json"), "w") as f:
+        json.dump({"total_steps": 300}, f)
+    elsewhere.folder = str(tmp_path / "not_here")
+    assert sweep.is_done(here) and sweep.is_done(elsewhere)
+    for steps, done in (("600", False), ("200", True)):
+        write_spec(tmp_path, text.replace("300", steps))
+        raised = sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / "a"))[1][0]
+        elsewhere.flags = raised.flags
+        assert sweep.is_done(raised) == done and sweep.is_done(elsewhere) == done
+        assert sweep.command(raised, "python") == ["python", raised.script, "--resume", folder, "--device", "cpu",
+                                                   "--total-steps", steps]
 
 
 @pytest.mark.parametrize("text, message", [
