@@ -87,7 +87,7 @@ class Args:
     wandb_project: str = "rama"
     """the W&B project"""
     eval_every: int = 10_000
-    """run evaluation episodes (no exploration noise) every this many environment steps"""
+    """run evaluation episodes (no exploration noise) every this many environment steps, and at the last step"""
     eval_episodes: int = 1
     """evaluation episodes per evaluation"""
     capture_video: bool = False
@@ -1520,7 +1520,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
         if args.method != "dreamer":
             multitask.add(episode)  # M grows with every task's episodes (shared arrays, no copy)
     env_steps = sum(len(ep["reward"]) - 1 for ep in replay.episodes) * args.action_repeat
-    if env_steps >= args.total_steps:
+    last_eval_due = args.eval_episodes and checkpoint is not None and checkpoint["state"]["next_eval"] <= env_steps
+    if env_steps >= args.total_steps and not last_eval_due:  # (a run killed before its last evaluation does it)
         print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
         return
 
@@ -1551,6 +1552,26 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     # --log-interval-seconds inside a round and one per collected episode(s)
     progress = tqdm(total=args.total_steps, initial=min(env_steps, args.total_steps), unit="step", dynamic_ncols=True,
                     disable=True if args.plain_log else None)
+    def evaluate():
+        """--eval-episodes episodes with the actor's mode, logged as eval/ at the current step, then a checkpoint (a
+        resumed run does not repeat this evaluation)."""
+        episodes = []
+        for i in range(args.eval_episodes):
+            policy.reset()
+            (episode,), frames = run_episodes(eval_env, lambda o: policy.act(o, None, rng),
+                                              [seed * 1_000_003 + 7919 * env_steps + i], task,
+                                              record=args.capture_video and i == 0)
+            episodes.append(episode)
+            if frames:
+                write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
+        eval_metrics = episode_metrics("eval", episodes)
+        while state["next_eval"] <= env_steps:
+            state["next_eval"] += args.eval_every
+        save_checkpoint(checkpoint_path, agent, state, args)
+        logger.log(env_steps, eval_metrics)
+        progress.write(f"step {env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
+        sys.stdout.flush()
+
     start_time, start_steps = time.time(), env_steps
     last_line = time.time()  # when the last plain line was printed
     try:
@@ -1622,24 +1643,9 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
                     logger.writer.add_figure("addressing/probabilities", fig, env_steps)  # closes the figure
 
-            # (b) evaluation without exploration noise, every eval_every environment steps
+            # (b) evaluation without exploration noise, every eval_every environment steps (and at the last step)
             if args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes:
-                episodes = []
-                for i in range(args.eval_episodes):
-                    policy.reset()
-                    (episode,), frames = run_episodes(eval_env, lambda o: policy.act(o, None, rng),
-                                                      [seed * 1_000_003 + 7919 * env_steps + i], task,
-                                                      record=args.capture_video and i == 0)
-                    episodes.append(episode)
-                    if frames:
-                        write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
-                eval_metrics = episode_metrics("eval", episodes)
-                while state["next_eval"] <= env_steps:
-                    state["next_eval"] += args.eval_every
-                save_checkpoint(checkpoint_path, agent, state, args)  # a resumed run does not repeat this evaluation
-                logger.log(env_steps, eval_metrics)
-                progress.write(f"step {env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
-                sys.stdout.flush()
+                evaluate()
 
             # (c) collect one episode per env (random actions while prefilling) and store each atomically
             seeds = [seed * 1_000_003 + len(replay) + i for i in range(args.num_envs)]  # episode k's seed, N or not
@@ -1665,6 +1671,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "
                       f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
                 last_line = time.time()
+        if args.eval_episodes and env_steps >= state["next_eval"]:  # the last step's evaluation, when it is due
+            evaluate()
     finally:
         for resource in (progress, sampler, logger, envs, eval_env):
             resource.close()

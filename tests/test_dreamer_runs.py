@@ -59,6 +59,16 @@ def test_tiny_run_writes_a_complete_run_folder(tmp_path, obs_type):
     videos = os.listdir(os.path.join(run_path, "videos"))
     assert any(v.startswith("eval_") for v in videos)
     assert any(v.startswith("openloop_") for v in videos) == (obs_type == "pixels")
+    # every --eval-every steps, and at the last step: the loop evaluates before collecting, the end after it
+    assert [row["step"] for row in read_metrics(run_path) if "eval/episodic_return" in row] == [200, 400]
+    if obs_type == "state":  # a run killed between its last episode and its last evaluation evaluates on resume
+        path = os.path.join(run_path, "checkpoint.pt")
+        payload = torch.load(path, weights_only=False)
+        payload["state"]["next_eval"] = 400
+        torch.save(payload, path)
+        run("--resume", run_path)
+        assert [row["step"] for row in read_metrics(run_path) if "eval/episodic_return" in row] == [200, 400, 400]
+        assert "done" in run("--resume", run_path).stdout  # evaluated: nothing left to do
 
 
 def _comparable(run_path):
