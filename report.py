@@ -16,6 +16,8 @@ The number per run is the paper's: the average training-episode return over the 
 - the interquartile mean (IQM) with a 95% stratified-bootstrap confidence interval (rliable), because 2-3 seeds
   with mean ± s.e. alone mislead. The IQM drops int(n/4) runs at each end, so with fewer than 4 seeds it equals
   the mean. The bootstrap is seeded, so the report is the same on every run of this command.
+A second table answers "does it beat Dreamer, and uniform mixing?": per task, each method's probability of
+improvement P(X > Y) over each, with its 95% bootstrap CI.
 The curves show, per task, one line per method. Each run's returns are averaged in --bins equal bins of
 environment steps; the line is the mean over seeds of those bin averages, and the band is ± one s.e.
 """
@@ -82,12 +84,12 @@ def mean_se(scores) -> tuple:
     return float(scores.mean()), float(se)
 
 
-def iqm_ci(scores, reps: int, seed: int) -> tuple:
-    """IQM and its 95% stratified-bootstrap CI (rliable) over runs of one task: (iqm, low, high)."""
+def bootstrap_ci(groups: list, statistic, reps: int, seed: int) -> tuple:
+    """statistic over score lists of one task (one list, or two for a comparison) and its 95% stratified-bootstrap
+    CI (rliable; each list resampled on its own): (point, low, high)."""
     from rliable import library as rly  # imported here: it pulls in arch, statsmodels and pandas (seconds)
-    from rliable import metrics
 
-    matrix = np.asarray(scores, dtype=float)[:, None]  # (runs, tasks=1): rliable's layout
+    matrices = [np.asarray(g, dtype=float)[:, None] for g in groups]  # (runs, tasks=1) each: rliable's layout
     # rliable 1.2.0 resamples with numpy's global generator (StratifiedBootstrap.update_indices calls
     # np.random.choice) and ignores its random_state, so seed the global one, fresh per cell, and restore it after
     saved = np.random.get_state()
@@ -96,11 +98,26 @@ def iqm_ci(scores, reps: int, seed: int) -> tuple:
         with warnings.catch_warnings():  # arch warns that rliable passes random_state, which is deprecated there
             warnings.simplefilter("ignore", FutureWarning)
             point, interval = rly.get_interval_estimates(
-                {"m": matrix}, lambda x: np.array([metrics.aggregate_iqm(x)]), reps=reps,
-                random_state=np.random.RandomState(seed))
+                {"m": matrices[0] if len(matrices) == 1 else tuple(matrices)},
+                lambda *x: np.array([statistic(*x)]), reps=reps, random_state=np.random.RandomState(seed))
     finally:
         np.random.set_state(saved)
     return float(point["m"][0]), float(interval["m"][0, 0]), float(interval["m"][1, 0])
+
+
+def iqm_ci(scores, reps: int, seed: int) -> tuple:
+    """IQM and its 95% stratified-bootstrap CI over runs of one task: (iqm, low, high)."""
+    from rliable import metrics
+
+    return bootstrap_ci([scores], metrics.aggregate_iqm, reps, seed)
+
+
+def improvement_ci(scores_x, scores_y, reps: int, seed: int) -> tuple:
+    """P(X > Y), the probability that a run of X scores higher than a run of Y (ties count half: rliable's
+    probability of improvement, the Mann-Whitney U over n_x·n_y), with its 95% CI: (p, low, high)."""
+    from rliable import metrics
+
+    return bootstrap_ci([scores_x, scores_y], metrics.probability_of_improvement, reps, seed)
 
 
 def method_order(methods) -> list:
@@ -138,6 +155,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
             row += [f"{fmt(mean, decimals)} ± {fmt(se, decimals)} ({len(scores)})",
                     f"{fmt(iqm, decimals)} [{fmt(low, decimals)}, {fmt(high, decimals)}]"]
         lines.append("| " + " | ".join(row) + " |")
+    lines += improvement_table(runs, tasks, methods, reps, seed, decimals)
     figure = "curves.png"
     lines += ["", f"![learning curves]({figure})", "", "## Runs", "",
               "| run | task | episodes | last env step | average return |", "| --- | --- | --- | --- | --- |"]
@@ -149,6 +167,34 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     plot_curves(runs, tasks, methods, key, bins, f"{experiment}: {key} (mean ± s.e. over seeds)",
                 os.path.join(out, figure))
     print(f"wrote {os.path.join(out, 'report.md')} and {os.path.join(out, figure)}")
+
+
+def improvement_table(runs: list, tasks: list, methods: list, reps: int, seed: int, decimals: int) -> list:
+    """Markdown lines: per task, each method's probability of improvement over Dreamer and over uniform mixing."""
+    references = [m for m in ("dreamer", "uniform") if m in methods]
+    if not references or len(methods) < 2:
+        return []
+    scores = {(r["task"], r["method"]): [] for r in runs}
+    for r in runs:
+        scores[(r["task"], r["method"])].append(r["values"].mean())
+    header = ["method"] + [f"{t}: P(> {METHOD_NAMES[ref]})" for t in tasks for ref in references]
+    lines = ["", "Does a method beat Dreamer, or uniform mixing? P(X > Y) is the probability that a run of the row's "
+             "method scores higher than a run of the column's (ties count half; rliable's probability of "
+             f"improvement), with its 95% stratified-bootstrap CI ({reps} resamples, seed {seed}). 0.5 is no "
+             "difference; a CI that lies above 0.5 says the row's method is better with 95% confidence.", "",
+             "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    for method in methods:
+        row = [METHOD_NAMES.get(method, f"`{method}`")]
+        for task in tasks:
+            for ref in references:
+                x, y = scores.get((task, method)), scores.get((task, ref))
+                if method == ref or not x or not y:
+                    row.append("–")
+                    continue
+                p, low, high = improvement_ci(x, y, reps, seed)
+                row.append(f"{p:.{decimals}f} [{low:.{decimals}f}, {high:.{decimals}f}]")
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
 
 
 def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, title: str, path: str):

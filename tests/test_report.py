@@ -68,6 +68,18 @@ def test_mean_se_and_iqm_by_hand():
 
 
 @pytest.mark.slow
+def test_probability_of_improvement_by_hand():
+    # [3, 5, 7] against [4, 4, 6]: 3 beats none; 5 beats both 4s; 7 beats all three -> 5 of 9 pairs
+    p, low, high = report.improvement_ci([3, 5, 7], [4, 4, 6], reps=500, seed=0)
+    assert p == pytest.approx(5 / 9) and 0 <= low <= p <= high <= 1
+    # ties count half: [1, 2] against [2, 3] -> only 2 vs 2, a tie: 0.5 of 4 pairs
+    assert report.improvement_ci([1, 2], [2, 3], reps=500, seed=0)[0] == pytest.approx(0.125)
+    assert report.improvement_ci([1, 2], [1, 2], reps=500, seed=0)[0] == 0.5  # the same scores: no difference
+    # every run of X above every run of Y: 1, and so is every resample
+    assert report.improvement_ci([5, 6], [1, 2, 3], reps=500, seed=0) == (1.0, 1.0, 1.0)
+
+
+@pytest.mark.slow
 def test_report_tables_by_hand(results):
     run_script("report.py", str(results.parent), "--reps", "500", "--decimals", "3")  # results/ holds experiments
     text = (results / "report.md").read_text()
@@ -76,7 +88,7 @@ def test_report_tables_by_hand(results):
     assert columns == ["method"] + [f"{t}: {h}" for t in ("dmc/hop", "run", "seq/0_walker-stand", "seq/1_walker-walk",
                                                             "walk") for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]
     rows = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")[1:]]
-            for line in text.splitlines() if line.startswith("| ") and not line.startswith("| method")}
+            for line in text.splitlines() if line.startswith("| ") and "±" in line}  # the first table's rows
     dreamer, rrama, vrama = rows["Dreamer"], rows["RRAMa"], rows["VRAMa"]
     assert dreamer[8] == "4.000 ± 2.041 (4)" and dreamer[9].startswith("2.500 [")  # walk, as computed above
     assert rrama[8] == "6.000 ± 1.528 (3)" and rrama[9].startswith("6.000 [")  # s.e. = sqrt(14 / 2) / sqrt(3)
@@ -84,6 +96,10 @@ def test_report_tables_by_hand(results):
     assert rrama[2:4] == ["–", "–"]  # run: no rrama
     assert rrama[4] == "2.000 ± – (1)" and rrama[6] == "5.000 ± – (1)"  # the task sequence's two tasks
     assert vrama[0] == "6.000 ± – (1)"
+    # P(RRAMa > Dreamer) on walk: [4, 5, 9] against [1, 2, 3, 10]: each beats 1, 2, 3 and loses to 10 -> 9 of 12
+    improvement = next(line for line in text.splitlines() if line.startswith("| RRAMa") and "[0." in line)
+    cells = [c.strip() for c in improvement.strip("|").split("|")]
+    assert cells[1:5] == ["–"] * 4 and cells[5].startswith("0.750 [")  # only walk has both; no uniform column
     assert "| walk__dreamer__s2 | walk | 2 | 200 | 2.000 |" in text  # the runs table (the resumed step counted once)
     assert (results / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # the bootstrap is seeded: the same command writes the same report
