@@ -143,19 +143,22 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
              f"interval (rliable, {reps} resamples, seed {seed}). With fewer than 4 seeds the IQM equals the mean.",
              f"Made by `python report.py {folder}{options}` from the results alone.", "",
              "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    scores = {}  # (task, method) -> each seed's run average, the number both tables start from
+    for r in runs:
+        scores.setdefault((r["task"], r["method"]), []).append(r["values"].mean())
     for method in methods:
         row = [METHOD_NAMES.get(method, f"`{method}`")]
         for task in tasks:
-            scores = [r["values"].mean() for r in runs if r["task"] == task and r["method"] == method]
-            if not scores:
+            if (task, method) not in scores:
                 row += ["–", "–"]
                 continue
-            mean, se = mean_se(scores)
-            iqm, low, high = iqm_ci(scores, reps, seed)
-            row += [f"{fmt(mean, decimals)} ± {fmt(se, decimals)} ({len(scores)})",
+            cell = scores[(task, method)]
+            mean, se = mean_se(cell)
+            iqm, low, high = iqm_ci(cell, reps, seed)
+            row += [f"{fmt(mean, decimals)} ± {fmt(se, decimals)} ({len(cell)})",
                     f"{fmt(iqm, decimals)} [{fmt(low, decimals)}, {fmt(high, decimals)}]"]
         lines.append("| " + " | ".join(row) + " |")
-    lines += improvement_table(runs, tasks, methods, reps, seed, decimals)
+    lines += improvement_table(scores, tasks, methods, reps, seed, decimals)
     figure = "curves.png"
     lines += ["", f"![learning curves]({figure})", "", "## Runs", "",
               "| run | task | episodes | last env step | average return |", "| --- | --- | --- | --- | --- |"]
@@ -169,14 +172,12 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     print(f"wrote {os.path.join(out, 'report.md')} and {os.path.join(out, figure)}")
 
 
-def improvement_table(runs: list, tasks: list, methods: list, reps: int, seed: int, decimals: int) -> list:
-    """Markdown lines: per task, each method's probability of improvement over Dreamer and over uniform mixing."""
+def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed: int, decimals: int) -> list:
+    """Markdown lines: per task, each method's probability of improvement over Dreamer and over uniform mixing.
+    scores: (task, method) -> the run averages of its seeds."""
     references = [m for m in ("dreamer", "uniform") if m in methods]
     if not references or len(methods) < 2:
         return []
-    scores = {(r["task"], r["method"]): [] for r in runs}
-    for r in runs:
-        scores[(r["task"], r["method"])].append(r["values"].mean())
     header = ["method"] + [f"{t}: P(> {METHOD_NAMES[ref]})" for t in tasks for ref in references]
     lines = ["", "Does a method beat Dreamer, or uniform mixing? P(X > Y) is the probability that a run of the row's "
              "method scores higher than a run of the column's (ties count half; rliable's probability of "
