@@ -272,10 +272,7 @@ def check_args(args: Args) -> None:
                          f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
     for env_id in task_list(args):
         make_env_spec(env_id)  # raises a UsageError naming --env-id
-    native, found = native_bf16(resolve_device(args.device))
-    if args.precision == "bf16" and not native:  # one line that says why, instead of a run 13x slower
-        raise UsageError(f"--precision bf16: {found}, so bf16 would be emulated (about 13x slower than fp32 on such "
-                         f"a CPU); use --precision fp32")
+    check_precision(args.precision, resolve_device(args.device))
 
 
 def task_list(args: Args) -> list:
@@ -1443,6 +1440,14 @@ def native_bf16(device: torch.device, cpuinfo: str = "/proc/cpuinfo") -> Tuple[b
                                                                            ", no avx512_bf16 or amx_bf16")
 
 
+def check_precision(precision: str, device: torch.device) -> None:
+    """--precision bf16 only where bf16 is fast: elsewhere one line that says why, instead of a run 13x slower."""
+    native, found = native_bf16(device)
+    if precision == "bf16" and not native:
+        raise UsageError(f"--precision bf16: {found}, so bf16 would be emulated (about 13x slower than fp32 on such "
+                         f"a CPU); use --precision fp32")
+
+
 # ----------------------------------------------------------------------------------------------------------
 # 9. Training loop
 # ----------------------------------------------------------------------------------------------------------
@@ -1552,9 +1557,12 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     # --log-interval-seconds inside a round and one per collected episode(s)
     progress = tqdm(total=args.total_steps, initial=min(env_steps, args.total_steps), unit="step", dynamic_ncols=True,
                     disable=True if args.plain_log else None)
-    def evaluate():
-        """--eval-episodes episodes with the actor's mode, logged as eval/ at the current step, then a checkpoint (a
-        resumed run does not repeat this evaluation)."""
+
+    def evaluate_if_due():
+        """Every --eval-every env steps once prefilled: --eval-episodes episodes with the actor's mode, logged as
+        eval/ at the current step, then a checkpoint (a resumed run does not repeat this evaluation)."""
+        if not (args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes):
+            return
         episodes = []
         for i in range(args.eval_episodes):
             policy.reset()
@@ -1644,8 +1652,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     logger.writer.add_figure("addressing/probabilities", fig, env_steps)  # closes the figure
 
             # (b) evaluation without exploration noise, every eval_every environment steps (and at the last step)
-            if args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes:
-                evaluate()
+            evaluate_if_due()
 
             # (c) collect one episode per env (random actions while prefilling) and store each atomically
             seeds = [seed * 1_000_003 + len(replay) + i for i in range(args.num_envs)]  # episode k's seed, N or not
@@ -1671,8 +1678,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "
                       f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
                 last_line = time.time()
-        if args.eval_episodes and env_steps >= state["next_eval"]:  # the last step's evaluation, when it is due
-            evaluate()
+        evaluate_if_due()  # the last step's evaluation
     finally:
         for resource in (progress, sampler, logger, envs, eval_env):
             resource.close()

@@ -184,9 +184,7 @@ def main(S, options: Options, args) -> None:
           + f" | precision {args.precision} | channels-last {args.channels_last}"
           + "".join(f" | {d} bf16: {S.native_bf16(torch.device(d))[1]}" for d in devices), flush=True)
     for device_name in devices:  # check_args checked --device; `auto` times the CPU as well
-        native, found = S.native_bf16(torch.device(device_name))
-        if args.precision == "bf16" and not native:
-            raise S.UsageError(f"--precision bf16: {found}, so bf16 would be emulated; use --precision fp32")
+        S.check_precision(args.precision, torch.device(device_name))
     state_shape, action_size = STATE_AND_ACTION[options.script]
     obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else state_shape
     rng = np.random.default_rng(args.seed)
