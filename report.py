@@ -17,7 +17,9 @@ The number per run is the paper's: the average training-episode return over the 
   with mean ± s.e. alone mislead. The IQM drops int(n/4) runs at each end, so with fewer than 4 seeds it equals
   the mean. The bootstrap is seeded, so the report is the same on every run of this command.
 A second table answers "does it beat Dreamer, and uniform mixing?": per task, each method's probability of
-improvement P(X > Y) over each, with its 95% bootstrap CI.
+improvement P(X > Y) over each, with its 95% bootstrap CI. A third says what the prior-data methods mixed into
+their batches (from the runs' addressing/ logs): the share of other tasks' chunks, the returns and reward sums of
+what was picked against what could have been, how peaked q is, and what the bandit objective gained.
 The curves show, per task, one line per method. Each run's returns are averaged in --bins equal bins of
 environment steps; the line is the mean over seeds of those bin averages, and the band is ± one s.e.
 """
@@ -73,8 +75,23 @@ def load_experiment(folder: str, key: str) -> list:
             if len(values) == 0:
                 print(f"warning: {metrics_path}: no {key}, left out", file=sys.stderr)
                 continue
-            runs.append({"task": task, "method": method, "seed": seed, "name": name, "steps": steps, "values": values})
+            # the name the run's episodes carry (addressing/pick_fraction/<name>): <k>_<name> of a sequence's folder
+            current = (os.path.basename(os.path.dirname(metrics_path)).split("_", 1)[1] if task != cell else
+                       (saved.get("task_sequence") or saved["env_id"]).split(",")[0].split("/")[-1])
+            runs.append({"task": task, "method": method, "seed": seed, "name": name, "steps": steps, "values": values,
+                         "metrics_path": metrics_path, "current_task": current})
     return runs
+
+
+def key_means(metrics_path: str) -> dict:
+    """Each key's mean over the steps it was logged at (as in read_series, the last line of a step wins)."""
+    by_key = {}
+    with open(metrics_path) as f:
+        for line in f:
+            row = json.loads(line)
+            for k, v in row.items():
+                by_key.setdefault(k, {})[row["step"]] = v
+    return {k: float(np.mean(list(v.values()))) for k, v in by_key.items() if k != "step"}
 
 
 def mean_se(scores) -> tuple:
@@ -159,6 +176,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
                     f"{fmt(iqm, decimals)} [{fmt(low, decimals)}, {fmt(high, decimals)}]"]
         lines.append("| " + " | ".join(row) + " |")
     lines += improvement_table(scores, tasks, methods, reps, seed, decimals)
+    lines += diagnostics_table(runs, tasks, methods, decimals)
     figure = "curves.png"
     lines += ["", f"![learning curves]({figure})", "", "## Runs", "",
               "| run | task | episodes | last env step | average return |", "| --- | --- | --- | --- | --- |"]
@@ -195,6 +213,56 @@ def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed:
                 p, low, high = improvement_ci(x, y, reps, seed)
                 row.append(f"{p:.{decimals}f} [{low:.{decimals}f}, {high:.{decimals}f}]")
         lines.append("| " + " | ".join(row) + " |")
+    return lines
+
+
+def run_diagnostics(means: dict, current_task: str) -> dict:
+    """What one run's mixed batches borrowed, from its metrics' means over rounds (nan where it logged nothing)."""
+    get = lambda k: means.get(f"addressing/{k}", float("nan"))  # noqa: E731
+    fractions = [k for k in means if k.startswith("addressing/pick_fraction/")]
+    return {"mixed": get("mixed_batches"),
+            "other_tasks": 1.0 - means.get(f"addressing/pick_fraction/{current_task}", 0.0) if fractions else float("nan"),
+            "picked_return": get("picked_return"), "candidate_return": get("candidate_return"),
+            "picked_chunk": get("picked_chunk_reward"), "candidate_chunk": get("candidate_chunk_reward"),
+            "entropy": get("entropy") / get("entropy_uniform"),
+            "bandit_gain": get("bandit_reward_q") - get("bandit_reward_uniform")}
+
+
+def diagnostics_table(runs: list, tasks: list, methods: list, decimals: int) -> list:
+    """Markdown lines: per task and prior-data method, what its mixed batches borrowed, the mean over seeds of each
+    run's mean over its rounds of updates (the addressing/ keys); none when no run logged them."""
+    cells = {}  # (task, method) -> [run_diagnostics of each seed]
+    for r in runs:
+        if r["method"] != "dreamer":
+            cells.setdefault((r["task"], r["method"]), []).append(run_diagnostics(key_means(r["metrics_path"]),
+                                                                                  r["current_task"]))
+    if not cells or all(np.isnan(d["mixed"]) for diags in cells.values() for d in diags):
+        return []
+
+    def mean(diags, key, digits):
+        values = [d[key] for d in diags if not np.isnan(d[key])]
+        return fmt(float(np.mean(values)), digits) if values else "–"
+
+    lines = ["", "What the prior-data methods mixed in (the addressing/ logs: each run's mean over its rounds of updates, "
+             "then the mean over its seeds). *Mixed batches*: the fraction of updates whose batch took chunks of M "
+             "(p). *From other tasks*: the fraction of those chunks from episodes of another task than the run's "
+             "own. *Return, picked / M*: the stored return of the episodes the picks came from, against M's (the "
+             "scored candidates' for the addressed methods). *Chunk reward*: the same for the picked chunks' stored "
+             "reward sums. *Entropy*: q's entropy over the m scored chunks as a fraction of a uniform q's (1: no "
+             "preference). *Bandit gain*: RRAMa's and RbRAMa's predicted reward sum of a pick under q minus a "
+             "uniform pick's (what their objective raises).", "",
+             "| task | method | runs | mixed batches | from other tasks | return, picked / M | chunk reward, picked / "
+             "candidates | entropy / uniform's | bandit gain |", "|" + " --- |" * 9]
+    for task in tasks:
+        for method in methods:
+            diags = cells.get((task, method))
+            if not diags:
+                continue
+            lines.append(f"| {task} | {METHOD_NAMES.get(method, f'`{method}`')} | {len(diags)} | "
+                         f"{mean(diags, 'mixed', 2)} | {mean(diags, 'other_tasks', 2)} | "
+                         f"{mean(diags, 'picked_return', decimals)} / {mean(diags, 'candidate_return', decimals)} | "
+                         f"{mean(diags, 'picked_chunk', decimals)} / {mean(diags, 'candidate_chunk', decimals)} | "
+                         f"{mean(diags, 'entropy', 2)} | {mean(diags, 'bandit_gain', decimals)} |")
     return lines
 
 

@@ -101,10 +101,56 @@ def test_report_tables_by_hand(results):
     cells = [c.strip() for c in improvement.strip("|").split("|")]
     assert cells[1:5] == ["–"] * 4 and cells[5].startswith("0.750 [")  # only walk has both; no uniform column
     assert "| walk__dreamer__s2 | walk | 2 | 200 | 2.000 |" in text  # the runs table (the resumed step counted once)
+    assert "mixed batches" not in text  # no run logged addressing/ keys: no third table
     assert (results / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # the bootstrap is seeded: the same command writes the same report
     run_script("report.py", str(results), "--reps", "500", "--decimals", "3")
     assert (results / "report.md").read_text() == text
+
+
+def test_diagnostics_table_by_hand(tmp_path):
+    exp = tmp_path / "exp"
+
+    def rounds(name, rows, env_id="dmc/walker-walk"):
+        run = write_run(exp, name, [1.0], {"env_id": env_id, "method": name.split("__")[1], "seed": 1})
+        with open(run / "metrics.jsonl", "a") as f:
+            f.write("".join(json.dumps({"step": step, **{f"addressing/{k}": v for k, v in row.items()}}) + "\n"
+                            for step, row in rows))
+
+    # rrama seed 1, two rounds -> means: mixed 0.5, walk's share 0.5 (other tasks 0.5), returns 15 / 6, chunk rewards
+    # 5 / 2, entropy 1.25 of uniform's 2 = 0.625, bandit gain 4 - 1 = 3
+    rounds("walk__rrama__s1", [
+        (200, {"mixed_batches": 0.4, "pick_fraction/walker-walk": 0.25, "pick_fraction/walker-stand": 0.75,
+               "picked_return": 10, "candidate_return": 6, "picked_chunk_reward": 4, "candidate_chunk_reward": 2,
+               "entropy": 1.0, "entropy_uniform": 2.0, "bandit_reward_q": 3, "bandit_reward_uniform": 1}),
+        (300, {"mixed_batches": 0.6, "pick_fraction/walker-walk": 0.75, "pick_fraction/walker-stand": 0.25,
+               "picked_return": 20, "candidate_return": 6, "picked_chunk_reward": 6, "candidate_chunk_reward": 2,
+               "entropy": 1.5, "entropy_uniform": 2.0, "bandit_reward_q": 5, "bandit_reward_uniform": 1})])
+    # rrama seed 2, one round logged twice (a resumed run: the last line of a step wins): all picks from its own task
+    own = {"pick_fraction/walker-walk": 1.0, "picked_return": 5, "candidate_return": 6, "picked_chunk_reward": 1,
+           "candidate_chunk_reward": 2, "entropy": 2.0, "entropy_uniform": 2.0, "bandit_reward_q": 1,
+           "bandit_reward_uniform": 1}
+    rounds("walk__rrama__s2", [(200, {"mixed_batches": 0.9, **own}), (200, {"mixed_batches": 0.7, **own})])
+    # uniform: picks only from walker-stand (no key for its own task: other tasks 1), nothing addressed
+    rounds("walk__uniform__s1", [(200, {"mixed_batches": 0.5, "pick_fraction/walker-stand": 1.0, "picked_return": 8,
+                                        "candidate_return": 7, "picked_chunk_reward": 3})])
+    write_run(exp, "walk__dreamer__s1", [1.0])  # no row
+    # a --task-sequence run's second task: its own task is the folder's, walker-walk
+    run = write_run(exp, "seq__vrama__s1", [1.0], {"env_id": "dmc/walker-stand", "task_sequence":
+                                                   "walker-stand,walker-walk", "method": "vrama", "seed": 1},
+                    sub="1_walker-walk")
+    with open(run / "1_walker-walk" / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({"step": 200, "addressing/mixed_batches": 1.0, "addressing/pick_fraction/walker-stand": 0.4,
+                            "addressing/pick_fraction/walker-walk": 0.6}) + "\n")
+    runs = report.load_experiment(str(exp), "charts/episodic_return")
+    lines = report.diagnostics_table(runs, ["seq/1_walker-walk", "walk"],
+                                     report.method_order({r["method"] for r in runs}), 1)
+    assert "| seq/1_walker-walk | VRAMa | 1 | 1.00 | 0.40 | – / – | – / – | – | – |" in lines
+    rows = [line for line in lines if line.startswith("| walk")]
+    # seeds averaged: mixed (0.5 + 0.7) / 2, other tasks (0.5 + 0) / 2, returns (15 + 5) / 2 / 6, chunk rewards
+    # (5 + 1) / 2 / 2, entropy (0.625 + 1) / 2 = 0.8125, bandit gain (3 + 0) / 2
+    assert rows == ["| walk | No addressing (uniform) | 1 | 0.50 | 1.00 | 8.0 / 7.0 | 3.0 / – | – | – |",
+                    "| walk | RRAMa | 2 | 0.60 | 0.25 | 10.0 / 6.0 | 3.0 / 2.0 | 0.81 | 1.5 |"]
 
 
 @pytest.mark.slow
