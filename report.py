@@ -41,14 +41,21 @@ METHOD_NAMES = {"dreamer": "Dreamer", "uniform": "No addressing (uniform)", "rra
                 "vrama": "VRAMa"}  # the paper's row names, in its order
 
 
-def read_series(metrics_path: str, key: str):
-    """(steps, values) of one key. A resumed run can log a step twice: the last line of a step wins."""
-    by_step = {}
+def read_metrics(metrics_path: str) -> dict:
+    """key -> {step: value} of a metrics.jsonl. A resumed run can log a step twice: the last line of a step wins."""
+    by_key = {}
     with open(metrics_path) as f:
         for line in f:
             row = json.loads(line)
-            if key in row:
-                by_step[row["step"]] = row[key]
+            for k, v in row.items():
+                if k != "step":
+                    by_key.setdefault(k, {})[row["step"]] = v
+    return by_key
+
+
+def read_series(metrics_path: str, key: str):
+    """(steps, values) of one key, in step order."""
+    by_step = read_metrics(metrics_path).get(key, {})
     steps = sorted(by_step)
     return np.array(steps, dtype=float), np.array([by_step[s] for s in steps], dtype=float)
 
@@ -84,14 +91,8 @@ def load_experiment(folder: str, key: str) -> list:
 
 
 def key_means(metrics_path: str) -> dict:
-    """Each key's mean over the steps it was logged at (as in read_series, the last line of a step wins)."""
-    by_key = {}
-    with open(metrics_path) as f:
-        for line in f:
-            row = json.loads(line)
-            for k, v in row.items():
-                by_key.setdefault(k, {})[row["step"]] = v
-    return {k: float(np.mean(list(v.values()))) for k, v in by_key.items() if k != "step"}
+    """Each key's mean over the steps it was logged at."""
+    return {k: float(np.mean(list(v.values()))) for k, v in read_metrics(metrics_path).items()}
 
 
 def mean_se(scores) -> tuple:
@@ -219,9 +220,9 @@ def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed:
 def run_diagnostics(means: dict, current_task: str) -> dict:
     """What one run's mixed batches borrowed, from its metrics' means over rounds (nan where it logged nothing)."""
     get = lambda k: means.get(f"addressing/{k}", float("nan"))  # noqa: E731
-    fractions = [k for k in means if k.startswith("addressing/pick_fraction/")]
-    return {"mixed": get("mixed_batches"),
-            "other_tasks": 1.0 - means.get(f"addressing/pick_fraction/{current_task}", 0.0) if fractions else float("nan"),
+    picked_any = any(k.startswith("addressing/pick_fraction/") for k in means)
+    own_share = means.get(f"addressing/pick_fraction/{current_task}", 0.0)
+    return {"mixed": get("mixed_batches"), "other_tasks": 1.0 - own_share if picked_any else float("nan"),
             "picked_return": get("picked_return"), "candidate_return": get("candidate_return"),
             "picked_chunk": get("picked_chunk_reward"), "candidate_chunk": get("candidate_chunk_reward"),
             "entropy": get("entropy") / get("entropy_uniform"),
@@ -243,9 +244,9 @@ def diagnostics_table(runs: list, tasks: list, methods: list, decimals: int) -> 
         values = [d[key] for d in diags if not np.isnan(d[key])]
         return fmt(float(np.mean(values)), digits) if values else "–"
 
-    lines = ["", "What the prior-data methods mixed in (the addressing/ logs: each run's mean over its rounds of updates, "
-             "then the mean over its seeds). *Mixed batches*: the fraction of updates whose batch took chunks of M "
-             "(p). *From other tasks*: the fraction of those chunks from episodes of another task than the run's "
+    lines = ["", "What the prior-data methods mixed in (the addressing/ logs: each run's mean over its rounds of "
+             "updates, then the mean over its seeds). *Mixed batches*: the fraction of updates whose batch took "
+             "chunks of M (p). *From other tasks*: the fraction of those chunks from episodes of another task than the run's "
              "own. *Return, picked / M*: the stored return of the episodes the picks came from, against M's (the "
              "scored candidates' for the addressed methods). *Chunk reward*: the same for the picked chunks' stored "
              "reward sums. *Entropy*: q's entropy over the m scored chunks as a fraction of a uniform q's (1: no "
