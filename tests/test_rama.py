@@ -358,3 +358,64 @@ def test_bad_prior_dirs_are_one_line_errors(tmp_path):
     assert proc.returncode == 2 and len(lines) == 1 and "--prior-dirs" in lines[0], proc.stderr
     proc = run("--method", "dreamer", "--prior-dirs", str(tmp_path), *TINY, check=False)
     assert proc.returncode == 2 and "--prior-dirs" in proc.stderr
+
+
+# tools/addressing_offline.py: f_φ trained on a finished run's objective with its world model held fixed
+def test_offline_score_by_hand():
+    from tools.addressing_offline import score
+
+    class Fixed:  # an addressing model whose q̂ is given: 2 rows x over 3 candidates
+        def refresh(self, multitask, seq_len, cap, rng):
+            self.candidates = (np.array([0, 1, 2]), np.zeros(3, int))
+
+        def probs(self, x):
+            return torch.tensor([[1.0, 0.0, 0.0], [0.5, 0.5, 0.0]])
+
+    candidates = (np.array([0, 1, 2]), np.array([10.0, 20.0, 60.0]), np.array([1.0, 2.0, 3.0]))
+    out = score(Fixed(), None, None, candidates, num_prior=1, seq_len=5, cap=10)
+    # E_q[stored] = (10 + 15) / 2 against the uniform 30; predicted (1 + 1.5) / 2 against 2; row 1's q is all on
+    # the prior chunk (episode 0), row 2's half; entropies 0 and ln 2 against ln 3
+    assert out["stored"] == pytest.approx(12.5 - 30.0) and out["predicted"] == pytest.approx(1.25 - 2.0)
+    assert out["prior_mass"] == pytest.approx(0.75)
+    assert out["entropy"] == pytest.approx(np.log(2) / 2 / np.log(3))
+
+
+def test_offline_tool_loads_state_checkpoints_from_before_the_plain_mlp_encoder():
+    from tools.addressing_offline import load_weights
+
+    args = rd.Args(obs_type="state", **SMALL)
+    saved = rd.Agent((5,), 2, args).state_dict()
+    # before commit 6170a30 the state encoder and decoder were modules holding their layers in `.net`
+    old = {k.replace("wm.encoder.", "wm.encoder.net.").replace("wm.decoder.", "wm.decoder.net."): v
+           for k, v in saved.items()}
+    assert old.keys() != saved.keys()
+    agent = rd.Agent((5,), 2, args)
+    load_weights(agent, old, "checkpoint.pt")
+    assert all(torch.equal(v, saved[k]) for k, v in agent.state_dict().items())
+    with pytest.raises(rd.UsageError, match="checkpoint.pt"):  # anything else is still one line naming the file
+        load_weights(agent, {"nope": torch.zeros(1)}, "checkpoint.pt")
+
+
+@pytest.mark.slow
+def test_offline_tool_on_a_tiny_rrama_run(tmp_path, prior_run):
+    run("--env-id", "dmc/walker-walk", "--method", "rrama", "--prior-dirs", prior_run, "--run-dir", str(tmp_path),
+        *TINY, "--prior-min-return", "0")
+    run_path = glob.glob(os.path.join(tmp_path, "*"))[0]
+    out = tmp_path / "offline.json"
+    proc = run_script("tools/addressing_offline.py", run_path, "--updates", "2", "--eval-every", "1", "--seeds", "0",
+                      "1", "--eval-rows", "3", "--out", str(out))
+    assert "| fresh | 2 |" in proc.stdout and "| run | 0 |" in proc.stdout
+    result = json.loads(out.read_text())
+    rows = result["rows"]
+    assert len(rows) == 2 * 2 * 3  # starts x seeds x scorings (updates 0, 1, 2)
+    assert result["method"] == "rrama" and 0 < result["prior_share"] < 1  # M: the prior's and the run's episodes
+    run_start = [r for r in rows if r["start"] == "run" and r["update"] == 0]
+    fresh_start = [r for r in rows if r["start"] == "fresh" and r["update"] == 0]
+    assert run_start[0]["predicted"] == run_start[1]["predicted"]  # the run's own f_φ, before any update
+    assert fresh_start[0]["predicted"] != fresh_start[1]["predicted"]  # two freshly drawn f_φ
+    assert all(0 <= r["prior_mass"] <= 1 and 0 < r["entropy"] <= 1 + 1e-9 for r in rows)
+    # a run without f_φ is one line naming it
+    run("--env-id", "dmc/walker-walk", "--method", "uniform", "--prior-dirs", prior_run, "--run-dir",
+        str(tmp_path / "u"), *TINY, "--prior-min-return", "0")
+    proc = run_script("tools/addressing_offline.py", glob.glob(str(tmp_path / "u" / "*"))[0], check=False)
+    assert proc.returncode == 2 and "has no f_φ" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1

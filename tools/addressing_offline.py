@@ -1,0 +1,200 @@
+"""Does f_φ learn its objective when the world model holds still? An offline check of a finished addressed run.
+
+RRAMa's bandit (Eq. 2) is rewarded with the world model's predicted reward sum of the chunk it picks. In a real run
+that reward moves while f_φ learns (the world model trains beside it). This tool takes a run's folder and holds its
+final world model fixed, then trains f_φ on the run's own objective (Eq. 1, 2 or 3, by the run's --method) for
+--updates updates, from two starting points:
+    fresh  a newly initialised f_φ (one per --seeds): can this objective teach f_φ at all, and how fast?
+    run    the run's own trained f_φ (address.pt, with its Adam state): can it still move where the signal points?
+Every --eval-every updates it scores q̂(j | x) over the candidate chunks of M (as the batch mix uses it), for
+--eval-rows current-task chunks x, against a uniform pick:
+    predicted  E_q̂[predicted reward sum] - uniform's: the bandit's own objective, under the fixed world model
+    stored     E_q̂[stored reward sum] - uniform's: the rewards written in the episodes (the prior task's own
+               reward when M comes from another task)
+    prior mass q̂'s mass on prior-run chunks (M also holds the run's own episodes)
+    entropy    q̂'s entropy as a fraction of a uniform q̂'s
+and prints a Markdown table of the mean over seeds with the 95% t-interval; --out writes the numbers as JSON.
+
+M is rebuilt as the run built it at its end: the prior episodes (--prior-dirs, --prior-min-return, K drawn with the
+run's seed) plus every episode the run collected; x comes from the (last) task's own episodes. Nothing in the run
+folder is written. CPU by default; a cartpole state run at batch 16 takes about 0.3 s per update on one core.
+
+Run (from the repository root):
+    python tools/addressing_offline.py runs/cartpole_tables/balance__rrama__s1/<run> --out results/x.json
+    python tools/addressing_offline.py <run> --starts fresh --updates 600 --seeds 0 1 2 3 4
+"""
+import dataclasses
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from typing import Literal, Optional, Tuple
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)  # the training script sits in the repository root
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import tyro  # noqa: E402
+
+import rama_dreamer as rd  # noqa: E402
+
+
+@dataclass
+class Args:
+    run: tyro.conf.Positional[str]
+    """a run folder of an addressed method (vrama, rrama, rbrama) with its checkpoint.pt and address.pt"""
+    starts: Tuple[Literal["fresh", "run"], ...] = ("fresh", "run")
+    """f_φ's starting points: `fresh` (new weights, one per seed) and/or `run` (the run's trained f_φ)"""
+    updates: int = 300
+    """addressing updates per seed and start (the run made C per collected episode, 900 in a 10-episode run)"""
+    eval_every: int = 50
+    """score q̂ every this many updates (and before the first)"""
+    seeds: Tuple[int, ...] = (0, 1, 2)
+    """seeds of the fresh weights and of the chunk samplers"""
+    eval_rows: int = 64
+    """current-task chunks x that q̂ is scored for"""
+    device: str = "cpu"
+    """`cpu`, `cuda`, `auto`"""
+    out: Optional[str] = None
+    """write the table's numbers (every seed, every scoring) to this JSON file"""
+
+
+def load_weights(module: torch.nn.Module, state: dict, path: str):
+    """load_state_dict, also for checkpoints written before the state encoder and decoder became plain modules
+    (commit 6170a30: their layers were named `encoder.net.*`, `decoder.net.*`); one line naming the file otherwise."""
+    try:
+        module.load_state_dict(state)
+    except RuntimeError:
+        renamed = {k.replace("encoder.net.", "encoder.").replace("decoder.net.", "decoder."): v for k, v in state.items()}
+        rd.load_state(path, module, renamed)
+
+
+def rebuild_buffers(args: rd.Args, run_path: str):
+    """(M, the current task's own episodes, how many of M's episodes are prior ones), as the run had them at its end."""
+    first = rd.load_episode(rd.list_episode_files(rd.episode_folders(run_path)[0])[0])
+    obs_shape, action_size = first["obs"].shape[1:], first["action"].shape[1]
+    multitask, own = rd.Replay(), rd.Replay()
+    if args.prior_dirs:  # the run's main() draws these first from default_rng(seed): the same K episodes
+        for episode in rd.load_prior_episodes(args.prior_dirs, args.prior_min_return, args.prior_max_episodes,
+                                              obs_shape, action_size, np.random.default_rng(args.seed)):
+            multitask.add(episode)
+    num_prior = len(multitask)
+    folders = rd.episode_folders(run_path)  # one per task of a --task-sequence, in order
+    for folder in folders:
+        for path in rd.list_episode_files(folder):
+            episode = rd.load_episode(path)
+            multitask.add(episode)
+            if folder == folders[-1]:
+                own.add(episode)
+    return multitask, own, num_prior, obs_shape, action_size
+
+
+@torch.no_grad()
+def candidate_rewards(agent, multitask, seq_len: int, cap: int, device):
+    """The fixed candidate chunks of M that every scoring uses, with their stored and predicted reward sums."""
+    episode_ids, starts = multitask.grid_ids(seq_len, cap, np.random.default_rng(0))
+    stored = multitask.chunk_rewards(episode_ids, starts, seq_len)  # (N_c,)
+    predicted = np.concatenate([  # (N_c,) the bandit's reward under the fixed world model
+        rd.predicted_reward_sum(agent.wm, rd.to_torch(multitask.gather(episode_ids[i:i + 256], starts[i:i + 256],
+                                                                       seq_len), device)).double().cpu().numpy()
+        for i in range(0, len(starts), 256)])
+    return episode_ids, stored, predicted
+
+
+@torch.no_grad()
+def score(addressing, multitask, x: dict, candidates, num_prior: int, seq_len: int, cap: int) -> dict:
+    """q̂(j | x_i) over the fixed candidates against a uniform pick (the rows of x averaged)."""
+    episode_ids, stored, predicted = candidates
+    addressing.refresh(multitask, seq_len, cap, np.random.default_rng(0))  # D for the same candidates each time
+    assert np.array_equal(addressing.candidates[0], episode_ids)
+    q = addressing.probs(x).double().cpu().numpy()  # (rows, N_c)
+    entropy = -(q * np.log(np.clip(q, 1e-300, None))).sum(-1)  # (rows,)
+    return {"predicted": float((q @ predicted).mean() - predicted.mean()),
+            "stored": float((q @ stored).mean() - stored.mean()),
+            "prior_mass": float((q @ (episode_ids < num_prior)).mean()),
+            "entropy": float(entropy.mean() / np.log(q.shape[1]))}
+
+
+def mean_ci(values) -> str:
+    """mean [95% t-interval] over seeds (the mean alone for one seed)."""
+    values = np.asarray(values, float)
+    if len(values) < 2:
+        return f"{values.mean():+.1f}"
+    from scipy import stats
+
+    half = stats.t.ppf(0.975, len(values) - 1) * values.std(ddof=1) / np.sqrt(len(values))
+    return f"{values.mean():+.1f} [{values.mean() - half:+.1f}, {values.mean() + half:+.1f}]"
+
+
+def main(cli: Args):
+    run_args, run_path = rd.resolve_run(rd.Args(resume=cli.run), set())
+    if run_args.method not in rd.ADDRESSED_METHODS:
+        raise rd.UsageError(f"{cli.run}: a {run_args.method} run has no f_φ (needs vrama, rrama or rbrama)")
+    if cli.updates < 0 or cli.eval_every < 1 or cli.eval_rows < 1 or not cli.seeds or not cli.starts:
+        raise rd.UsageError("--updates must be >= 0, --eval-every and --eval-rows >= 1, --seeds and --starts non-empty")
+    device = rd.resolve_device(cli.device)
+    multitask, own, num_prior, obs_shape, action_size = rebuild_buffers(run_args, run_path)
+    task_path = os.path.dirname(rd.episode_folders(run_path)[-1])  # the (last) task's folder
+    checkpoint = rd.read_checkpoint(os.path.join(task_path, "checkpoint.pt"), run_args)
+    saved_address = rd.read_checkpoint(os.path.join(run_path, "address.pt"), run_args)
+    if checkpoint is None or saved_address is None:
+        raise rd.UsageError(f"{cli.run}: needs checkpoint.pt and address.pt (a run that finished at least one round)")
+    agent = rd.Agent(obs_shape, action_size, run_args).to(device)
+    load_weights(agent, checkpoint["agent"], os.path.join(task_path, "checkpoint.pt"))
+    candidates = candidate_rewards(agent, multitask, run_args.seq_len, run_args.address_candidates, device)
+    x_eval = rd.to_torch(own.sample(cli.eval_rows, run_args.seq_len, np.random.default_rng(12345)), device)
+    print(f"{cli.run}: {run_args.method}, M = {num_prior} prior + {len(multitask) - num_prior} own episodes, "
+          f"{cli.updates} updates x {len(cli.seeds)} seeds per start, {device}", flush=True)
+
+    rows = []  # one per (start, seed, scoring)
+    for start in cli.starts:
+        for seed in cli.seeds:
+            torch.manual_seed(seed)
+            rng = np.random.default_rng(seed)
+            addressing = rd.Addressing(obs_shape, action_size, run_args, device)
+            if start == "run":
+                load_weights(addressing.net, saved_address["net"], os.path.join(run_path, "address.pt"))
+                addressing.opt.load_state_dict(saved_address["opt"])
+            t0 = time.perf_counter()
+            for update in range(cli.updates + 1):
+                if update % cli.eval_every == 0 or update == cli.updates:
+                    rows.append({"start": start, "seed": seed, "update": update,
+                                 **score(addressing, multitask, x_eval, candidates, num_prior, run_args.seq_len,
+                                         run_args.address_candidates)})
+                if update < cli.updates:  # x ~ M_τ, M_j ~ M, one step of φ with the agent fixed
+                    x = rd.to_torch(own.sample(run_args.batch_size, run_args.seq_len, rng), device)
+                    m_batch = rd.to_torch(multitask.sample(run_args.address_batch, run_args.seq_len, rng), device)
+                    addressing.train(agent, x, m_batch, run_args)
+            print(f"  {start} seed {seed}: {cli.updates} updates in {time.perf_counter() - t0:.0f} s, predicted-reward "
+                  f"gain {rows[-1]['predicted']:+.1f}", flush=True)
+
+    episode_ids, stored, predicted = candidates
+    facts = {"candidates": len(stored), "prior_share": float((episode_ids < num_prior).mean()),
+             "reward_corr": float(np.corrcoef(predicted, stored)[0, 1]) if stored.std() > 0 else float("nan")}
+    print(f"\nq̂ against a uniform pick, mean over {len(cli.seeds)} seeds [95% t-interval]; over the {facts['candidates']} "
+          f"candidates the world model's predicted and the stored chunk rewards correlate at {facts['reward_corr']:.2f}, "
+          f"and {facts['prior_share']:.2f} of them come from prior runs\n")
+    print("| start | update | predicted-reward gain | stored-reward gain | prior mass | entropy / uniform |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for start in cli.starts:
+        for update in sorted({r["update"] for r in rows}):
+            sel = [r for r in rows if r["start"] == start and r["update"] == update]
+            print(f"| {start} | {update} | {mean_ci([r['predicted'] for r in sel])} | "
+                  f"{mean_ci([r['stored'] for r in sel])} | {np.mean([r['prior_mass'] for r in sel]):.2f} | "
+                  f"{np.mean([r['entropy'] for r in sel]):.2f} |")
+    if cli.out:
+        os.makedirs(os.path.dirname(os.path.abspath(cli.out)), exist_ok=True)
+        with open(cli.out, "w") as f:
+            json.dump({"run": cli.run, "args": dataclasses.asdict(cli), "method": run_args.method, **facts, "rows": rows}, f,
+                      indent=1)
+        print(f"\nwrote {cli.out}")
+
+
+if __name__ == "__main__":
+    try:
+        main(tyro.cli(Args))
+    except rd.UsageError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(e.code)
