@@ -364,20 +364,25 @@ def test_bad_prior_dirs_are_one_line_errors(tmp_path):
 def test_offline_score_by_hand():
     from tools.addressing_offline import score
 
-    class Fixed:  # an addressing model whose q̂ is given: 2 rows x over 3 candidates
+    class Fixed:  # an addressing model with given embeddings: f(x) = 0 and 1 for the 2 rows, f(M_j) = ln 2, 0, 0
+        D = torch.tensor([[np.log(2)], [0.0], [0.0]])
+
         def refresh(self, multitask, seq_len, cap, rng):
             self.candidates = (np.array([0, 1, 2]), np.zeros(3, int))
 
-        def probs(self, x):
-            return torch.tensor([[1.0, 0.0, 0.0], [0.5, 0.5, 0.0]])
+        def embed(self, x):
+            return torch.tensor([[0.0], [1.0]])
 
     candidates = (np.array([0, 1, 2]), np.array([10.0, 20.0, 60.0]), np.array([1.0, 2.0, 3.0]))
     out = score(Fixed(), None, None, candidates, num_prior=1, seq_len=5, cap=10)
-    # E_q[stored] = (10 + 15) / 2 against the uniform 30; predicted (1 + 1.5) / 2 against 2; row 1's q is all on
-    # the prior chunk (episode 0), row 2's half; entropies 0 and ln 2 against ln 3
-    assert out["stored"] == pytest.approx(12.5 - 30.0) and out["predicted"] == pytest.approx(1.25 - 2.0)
-    assert out["prior_mass"] == pytest.approx(0.75)
-    assert out["entropy"] == pytest.approx(np.log(2) / 2 / np.log(3))
+    # logits (0, 0, 0) and (ln 2, 0, 0): q̂ = (1/3, 1/3, 1/3) and (1/2, 1/4, 1/4). E_q̂[stored] = 30 and
+    # 5 + 5 + 15 = 25 against the uniform 30; predicted 2 and 0.5 + 0.5 + 0.75 against 2; the prior chunk (episode 0)
+    # gets 1/3 and 1/2; entropies ln 3 and 1.5 ln 2 against ln 3
+    assert out["stored"] == pytest.approx(27.5 - 30.0) and out["predicted"] == pytest.approx(1.875 - 2.0)
+    assert out["prior_mass"] == pytest.approx(5 / 12)
+    assert out["entropy"] == pytest.approx((np.log(3) + 1.5 * np.log(2)) / 2 / np.log(3))
+    assert out["embedding_norm"] == pytest.approx(np.log(2) / 3)
+    assert out["logit_sd"] == pytest.approx((0 + np.log(2) * np.sqrt(2) / 3) / 2)  # s.d. of (ln 2, 0, 0): ln 2·√2/3
 
 
 def test_offline_tool_loads_state_checkpoints_from_before_the_plain_mlp_encoder():
