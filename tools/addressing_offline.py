@@ -13,7 +13,7 @@ Every --eval-every updates it scores q̂(j | x) over the candidate chunks of M (
                reward when M comes from another task)
     prior mass q̂'s mass on prior-run chunks (M also holds the run's own episodes)
     entropy    q̂'s entropy as a fraction of a uniform q̂'s
-    |f(M_j)|   the candidates' embedding norm, and logit s.d. the spread of f(x)ᵀ f(M_j) over them: how sharp q̂ can be
+    ‖f(M_j)‖   the candidates' embedding norm, and logit s.d. the spread of f(x)ᵀ f(M_j) over them: how sharp q̂ can be
 and prints a Markdown table of the mean over seeds with the 95% t-interval; --out writes the numbers as JSON.
 
 M is rebuilt as the run built it at its end: the prior episodes (--prior-dirs, --prior-min-return, K drawn with the
@@ -117,7 +117,7 @@ def score(addressing, multitask, x: dict, candidates, num_prior: int, seq_len: i
             "stored": float((q @ stored).mean() - stored.mean()),
             "prior_mass": float((q @ (episode_ids < num_prior)).mean()),
             "entropy": float(entropy.mean() / np.log(q.shape[1])),
-            "embedding_norm": float(addressing.D.double().norm(dim=-1).mean()),  # |f(M_j)|: the logits' scale
+            "embedding_norm": float(addressing.D.double().norm(dim=-1).mean()),  # ‖f(M_j)‖: the logits' scale
             "logit_sd": float(logits.numpy().std(-1).mean())}  # the spread of f(x_i)ᵀ D_j over the candidates
 
 
@@ -180,7 +180,7 @@ def main(cli: Args):
     print(f"\nq̂ against a uniform pick, mean over {len(cli.seeds)} seeds [95% t-interval]; over the {facts['candidates']} "
           f"candidates the world model's predicted and the stored chunk rewards correlate at {facts['reward_corr']:.2f}, "
           f"and {facts['prior_share']:.2f} of them come from prior runs\n")
-    print("| start | update | predicted-reward gain | stored-reward gain | prior mass | entropy / uniform | |f(M_j)| "
+    print("| start | update | predicted-reward gain | stored-reward gain | prior mass | entropy / uniform | ‖f(M_j)‖ "
           "| logit s.d. |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for start in cli.starts:
