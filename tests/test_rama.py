@@ -424,3 +424,5 @@ def test_offline_tool_on_a_tiny_rrama_run(tmp_path, prior_run):
         str(tmp_path / "u"), *TINY, "--prior-min-return", "0")
     proc = run_script("tools/addressing_offline.py", glob.glob(str(tmp_path / "u" / "*"))[0], check=False)
     assert proc.returncode == 2 and "has no f_φ" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    proc = run_script("tools/addressing_offline.py", str(tmp_path / "nope"), check=False)  # not a run folder
+    assert proc.returncode == 2 and "no args.json" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1

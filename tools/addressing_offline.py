@@ -74,7 +74,10 @@ def load_weights(module: torch.nn.Module, state: dict, path: str):
 
 def rebuild_buffers(args: rd.Args, run_path: str):
     """(M, the current task's own episodes, how many of M's episodes are prior ones), as the run had them at its end."""
-    first = rd.load_episode(rd.list_episode_files(rd.episode_folders(run_path)[0])[0])
+    folders = rd.episode_folders(run_path)  # one per task of a --task-sequence, in order
+    if not folders:
+        raise rd.UsageError(f"{run_path}: holds no episode files")
+    first = rd.load_episode(rd.list_episode_files(folders[0])[0])
     obs_shape, action_size = first["obs"].shape[1:], first["action"].shape[1]
     multitask, own = rd.Replay(), rd.Replay()
     if args.prior_dirs:  # the run's main() draws these first from default_rng(seed): the same K episodes
@@ -82,7 +85,6 @@ def rebuild_buffers(args: rd.Args, run_path: str):
                                               obs_shape, action_size, np.random.default_rng(args.seed)):
             multitask.add(episode)
     num_prior = len(multitask)
-    folders = rd.episode_folders(run_path)  # one per task of a --task-sequence, in order
     for folder in folders:
         for path in rd.list_episode_files(folder):
             episode = rd.load_episode(path)
@@ -133,7 +135,10 @@ def mean_ci(values) -> str:
 
 
 def main(cli: Args):
-    run_args, run_path = rd.resolve_run(rd.Args(resume=cli.run), set())
+    try:  # the run's saved args, checked as --resume checks them
+        run_args, run_path = rd.resolve_run(rd.Args(resume=cli.run), set())
+    except rd.UsageError as e:  # its messages name --resume, which this tool does not have
+        raise rd.UsageError(str(e).replace("--resume ", "", 1)) from None
     if run_args.method not in rd.ADDRESSED_METHODS:
         raise rd.UsageError(f"{cli.run}: a {run_args.method} run has no f_φ (needs vrama, rrama or rbrama)")
     if cli.updates < 0 or cli.eval_every < 1 or cli.eval_rows < 1 or not cli.seeds or not cli.starts:
