@@ -246,11 +246,11 @@ def diagnostics_table(runs: list, tasks: list, methods: list, decimals: int) -> 
 
     lines = ["", "What the prior-data methods mixed in (the addressing/ logs: each run's mean over its rounds of "
              "updates, then the mean over its seeds). *Mixed batches*: the fraction of updates whose batch took "
-             "chunks of M (p). *From other tasks*: the fraction of those chunks from episodes of another task than the run's "
-             "own. *Return, picked / M*: the stored return of the episodes the picks came from, against M's (the "
-             "scored candidates' for the addressed methods). *Chunk reward*: the same for the picked chunks' stored "
-             "reward sums. *Entropy*: q's entropy over the m scored chunks as a fraction of a uniform q's (1: no "
-             "preference). *Bandit gain*: RRAMa's and RbRAMa's predicted reward sum of a pick under q minus a "
+             "chunks of M (p). *From other tasks*: the fraction of those chunks from episodes of another task than "
+             "the run's own. *Return, picked / M*: the stored return of the episodes the picks came from, against "
+             "M's (the scored candidates' for the addressed methods). *Chunk reward*: the same for the picked chunks' "
+             "stored reward sums. *Entropy*: q's entropy over the m scored chunks as a fraction of a uniform q's "
+             "(1: no preference). *Bandit gain*: RRAMa's and RbRAMa's predicted reward sum of a pick under q minus a "
              "uniform pick's (what their objective raises).", "",
              "| task | method | runs | mixed batches | from other tasks | return, picked / M | chunk reward, picked / "
              "candidates | entropy / uniform's | bandit gain |", "|" + " --- |" * 9]

@@ -13,7 +13,8 @@ Every --eval-every updates it scores q̂(j | x) over the candidate chunks of M (
                reward when M comes from another task)
     prior mass q̂'s mass on prior-run chunks (M also holds the run's own episodes)
     entropy    q̂'s entropy as a fraction of a uniform q̂'s
-    ‖f(M_j)‖   the candidates' embedding norm, and logit s.d. the spread of f(x)ᵀ f(M_j) over them: how sharp q̂ can be
+    ‖f(M_j)‖   the candidates' embedding norm, and logit s.d. the spread of f(x)ᵀ f(M_j) over them: how sharp q̂
+               can be
 and prints a Markdown table of the mean over seeds with the 95% t-interval; --out writes the numbers as JSON.
 
 M is rebuilt as the run built it at its end: the prior episodes (--prior-dirs, --prior-min-return, K drawn with the
@@ -68,12 +69,14 @@ def load_weights(module: torch.nn.Module, state: dict, path: str):
     try:
         module.load_state_dict(state)
     except RuntimeError:
-        renamed = {k.replace("encoder.net.", "encoder.").replace("decoder.net.", "decoder."): v for k, v in state.items()}
+        renamed = {k.replace("encoder.net.", "encoder.").replace("decoder.net.", "decoder."): v
+                   for k, v in state.items()}
         rd.load_state(path, module, renamed)
 
 
 def rebuild_buffers(args: rd.Args, run_path: str):
-    """(M, the current task's own episodes, how many of M's episodes are prior ones), as the run had them at its end."""
+    """(M, the current task's own episodes, how many of M's episodes are prior ones, the observation shape, the action
+    size, the current task's folder), as the run had them at its end."""
     folders = rd.episode_folders(run_path)  # one per task of a --task-sequence, in order
     if not folders:
         raise rd.UsageError(f"{run_path}: holds no episode files")
@@ -91,7 +94,7 @@ def rebuild_buffers(args: rd.Args, run_path: str):
             multitask.add(episode)
             if folder == folders[-1]:
                 own.add(episode)
-    return multitask, own, num_prior, obs_shape, action_size
+    return multitask, own, num_prior, obs_shape, action_size, os.path.dirname(folders[-1])
 
 
 @torch.no_grad()
@@ -144,8 +147,7 @@ def main(cli: Args):
     if cli.updates < 0 or cli.eval_every < 1 or cli.eval_rows < 1 or not cli.seeds or not cli.starts:
         raise rd.UsageError("--updates must be >= 0, --eval-every and --eval-rows >= 1, --seeds and --starts non-empty")
     device = rd.resolve_device(cli.device)
-    multitask, own, num_prior, obs_shape, action_size = rebuild_buffers(run_args, run_path)
-    task_path = os.path.dirname(rd.episode_folders(run_path)[-1])  # the (last) task's folder
+    multitask, own, num_prior, obs_shape, action_size, task_path = rebuild_buffers(run_args, run_path)
     checkpoint = rd.read_checkpoint(os.path.join(task_path, "checkpoint.pt"), run_args)
     saved_address = rd.read_checkpoint(os.path.join(run_path, "address.pt"), run_args)
     if checkpoint is None or saved_address is None:
@@ -182,9 +184,9 @@ def main(cli: Args):
     episode_ids, stored, predicted = candidates
     facts = {"candidates": len(stored), "prior_share": float((episode_ids < num_prior).mean()),
              "reward_corr": float(np.corrcoef(predicted, stored)[0, 1]) if stored.std() > 0 else float("nan")}
-    print(f"\nq̂ against a uniform pick, mean over {len(cli.seeds)} seeds [95% t-interval]; over the {facts['candidates']} "
-          f"candidates the world model's predicted and the stored chunk rewards correlate at {facts['reward_corr']:.2f}, "
-          f"and {facts['prior_share']:.2f} of them come from prior runs\n")
+    print(f"\nq̂ against a uniform pick, mean over {len(cli.seeds)} seeds [95% t-interval]; over the "
+          f"{facts['candidates']} candidates the world model's predicted and the stored chunk rewards correlate at "
+          f"{facts['reward_corr']:.2f}, and {facts['prior_share']:.2f} of them come from prior runs\n")
     print("| start | update | predicted-reward gain | stored-reward gain | prior mass | entropy / uniform | ‖f(M_j)‖ "
           "| logit s.d. |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
@@ -198,8 +200,8 @@ def main(cli: Args):
     if cli.out:
         os.makedirs(os.path.dirname(os.path.abspath(cli.out)), exist_ok=True)
         with open(cli.out, "w") as f:
-            json.dump({"run": cli.run, "args": dataclasses.asdict(cli), "method": run_args.method, **facts, "rows": rows}, f,
-                      indent=1)
+            json.dump({"run": cli.run, "args": dataclasses.asdict(cli), "method": run_args.method, **facts,
+                       "rows": rows}, f, indent=1)
         print(f"\nwrote {cli.out}")
 
 
