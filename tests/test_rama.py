@@ -366,11 +366,12 @@ def test_offline_score_by_hand():
 
     class Fixed:  # an addressing model with given embeddings: f(x) = 0 and 1 for the 2 rows, f(M_j) = ln 2, 0, 0
         D = torch.tensor([[np.log(2)], [0.0], [0.0]])
+        logit_scale = 1.0
 
         def refresh(self, multitask, seq_len, cap, rng):
             self.candidates = (np.array([0, 1, 2]), np.zeros(3, int))
 
-        def embed(self, x):
+        def embed_x(self, x):
             return torch.tensor([[0.0], [1.0]])
 
     candidates = (np.array([0, 1, 2]), np.array([10.0, 20.0, 60.0]), np.array([1.0, 2.0, 3.0]))
@@ -383,6 +384,37 @@ def test_offline_score_by_hand():
     assert out["entropy"] == pytest.approx((np.log(3) + 1.5 * np.log(2)) / 2 / np.log(3))
     assert out["embedding_norm"] == pytest.approx(np.log(2) / 3)
     assert out["logit_sd"] == pytest.approx((0 + np.log(2) * np.sqrt(2) / 3) / 2)  # s.d. of (ln 2, 0, 0): ln 2·√2/3
+
+
+def test_offline_variants_scale_the_logits_and_freeze_the_x_embedding():
+    from tools.addressing_offline import VariantAddressing
+
+    args = rd.Args(obs_type="state", method="rrama", **SMALL)
+    agent = rd.Agent((3,), 2, args)
+    rng = np.random.default_rng(0)
+    replay = synthetic_replay((3,), 2, 2, 20, rng)
+    x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
+    torch.manual_seed(0)
+    plain = VariantAddressing((3,), 2, args, "cpu", logit_scale=1.0)
+    torch.manual_seed(0)
+    scaled = VariantAddressing((3,), 2, args, "cpu", logit_scale=0.25)
+    # the same weights: f(M_j) scaled by 1/4, f(x) as it was, so every logit f(x)ᵀ f(M_j) is a quarter
+    assert torch.allclose(scaled.embed(m), 0.25 * plain.embed(m)) and torch.equal(scaled.embed_x(x), plain.embed_x(x))
+    for frozen in (False, True):
+        torch.manual_seed(0)
+        addressing = VariantAddressing((3,), 2, args, "cpu", logit_scale=1.0)
+        if frozen:
+            addressing.freeze_x()
+        x_before, m_before = addressing.embed_x(x).detach(), addressing.embed(m).detach()
+        seen = []
+        real_embed_x = addressing.embed_x
+        addressing.embed_x = lambda batch: seen.append(batch is x) or real_embed_x(batch)
+        for _ in range(3):
+            addressing.train(agent, x, m, args)
+        assert seen == [True] * 3  # train embedded x, and only x, through embed_x
+        assert not torch.allclose(addressing.embed(m), m_before)  # φ learned
+        # the stop-gradient stops the gradient, but the shared weights still move f(x); the frozen copy does not
+        assert torch.equal(real_embed_x(x), x_before) == frozen
 
 
 def test_offline_tool_loads_state_checkpoints_from_before_the_plain_mlp_encoder():

@@ -17,6 +17,13 @@ Every --eval-every updates it scores q̂(j | x) over the candidate chunks of M (
                can be
 and prints a Markdown table of the mean over seeds with the 95% t-interval; --out writes the numbers as JSON.
 
+Three knobs test why f_φ may not follow its objective; the defaults are the run's own f_φ (the paper's):
+    --logit-scale s   multiply the logits f(x)ᵀ f(M_j) by s (1/√U is a transformer's scale): does q̂ saturate?
+    --x-embedding frozen   embed x with a frozen copy of the starting f_φ, so that a step of φ moves f(M_j) only
+                      (the paper's stop-gradient on f(x) stops the gradient, yet the shared weights still move
+                      f(x)): does the shared embedding pull q̂ toward chunks that look like x?
+    --lr              f_φ's Adam learning rate instead of the run's --address-lr
+
 M is rebuilt as the run built it at its end: the prior episodes (--prior-dirs, --prior-min-return, K drawn with the
 run's seed) plus every episode the run collected; x comes from the (last) task's own episodes. Nothing in the run
 folder is written. CPU by default; a cartpole state run at batch 16 takes about 0.3 s per update on one core.
@@ -25,6 +32,7 @@ Run (from the repository root):
     python tools/addressing_offline.py runs/cartpole_tables/balance__rrama__s1/<run> --out results/x.json
     python tools/addressing_offline.py <run> --starts fresh --updates 600 --seeds 0 1 2 3 4
 """
+import copy
 import dataclasses
 import json
 import os
@@ -61,6 +69,42 @@ class Args:
     """`cpu`, `cuda`, `auto`"""
     out: Optional[str] = None
     """write the table's numbers (every seed, every scoring) to this JSON file"""
+    logit_scale: float = 1.0
+    """multiply the logits f(x)ᵀ f(M_j) by this (1: the paper's plain dot product)"""
+    x_embedding: Literal["shared", "frozen"] = "shared"
+    """`shared`: x is embedded by f_φ itself (the paper); `frozen`: by a frozen copy of the starting f_φ"""
+    lr: Optional[float] = None
+    """f_φ's learning rate (default: the run's --address-lr)"""
+
+
+class VariantAddressing(rd.Addressing):
+    """The script's Addressing with the check's knobs. Addressing.train embeds x and M with one method, embed; this
+    class tells them apart by the x batch it was handed (its dict object), so that the objective's code is the
+    script's own."""
+
+    def __init__(self, obs_shape, action_size: int, run_args: rd.Args, device, logit_scale: float):
+        super().__init__(obs_shape, action_size, run_args, device)
+        self.logit_scale = logit_scale
+        self.x_net = None  # set by freeze_x: the frozen copy that embeds x
+        self.x_batch = None  # the x of the current train call
+
+    def freeze_x(self):
+        self.x_net = copy.deepcopy(self.net).requires_grad_(False)
+
+    def embed_x(self, batch: dict):
+        return (self.x_net or self.net)(batch["obs"], batch["action"], batch["reward"])  # (B, U)
+
+    def embed(self, batch: dict):
+        if batch is self.x_batch:
+            return self.embed_x(batch)
+        return self.logit_scale * self.net(batch["obs"], batch["action"], batch["reward"])  # (B, U): f(M_j), scaled
+
+    def train(self, agent, x: dict, m_batch: dict, args: rd.Args) -> dict:
+        self.x_batch = x
+        try:
+            return super().train(agent, x, m_batch, args)
+        finally:
+            self.x_batch = None
 
 
 def load_weights(module: torch.nn.Module, state: dict, path: str):
@@ -115,14 +159,14 @@ def score(addressing, multitask, x: dict, candidates, num_prior: int, seq_len: i
     episode_ids, stored, predicted = candidates
     addressing.refresh(multitask, seq_len, cap, np.random.default_rng(0))  # D for the same candidates each time
     assert np.array_equal(addressing.candidates[0], episode_ids)
-    logits = (addressing.embed(x).double() @ addressing.D.double().T).cpu()  # (rows, N_c), as Addressing.probs
+    logits = (addressing.embed_x(x).double() @ addressing.D.double().T).cpu()  # (rows, N_c), as Addressing.probs
     q = logits.softmax(-1).numpy()  # (rows, N_c)
     entropy = -(q * logits.log_softmax(-1).numpy()).sum(-1)  # (rows,)
     return {"predicted": float((q @ predicted).mean() - predicted.mean()),
             "stored": float((q @ stored).mean() - stored.mean()),
             "prior_mass": float((q @ (episode_ids < num_prior)).mean()),
             "entropy": float(entropy.mean() / np.log(q.shape[1])),
-            "embedding_norm": float(addressing.D.double().norm(dim=-1).mean()),  # ‖f(M_j)‖: the logits' scale
+            "embedding_norm": float(addressing.D.double().norm(dim=-1).mean() / addressing.logit_scale),  # ‖f(M_j)‖
             "logit_sd": float(logits.numpy().std(-1).mean())}  # the spread of f(x_i)ᵀ D_j over the candidates
 
 
@@ -146,6 +190,8 @@ def main(cli: Args):
         raise rd.UsageError(f"{cli.run}: a {run_args.method} run has no f_φ (needs vrama, rrama or rbrama)")
     if cli.updates < 0 or cli.eval_every < 1 or cli.eval_rows < 1 or not cli.seeds or not cli.starts:
         raise rd.UsageError("--updates must be >= 0, --eval-every and --eval-rows >= 1, --seeds and --starts non-empty")
+    if cli.logit_scale <= 0 or (cli.lr is not None and cli.lr <= 0):
+        raise rd.UsageError("--logit-scale and --lr must be > 0")
     device = rd.resolve_device(cli.device)
     multitask, own, num_prior, obs_shape, action_size, task_path = rebuild_buffers(run_args, run_path)
     checkpoint = rd.read_checkpoint(os.path.join(task_path, "checkpoint.pt"), run_args)
@@ -157,17 +203,23 @@ def main(cli: Args):
     candidates = candidate_rewards(agent, multitask, run_args.seq_len, run_args.address_candidates, device)
     x_eval = rd.to_torch(own.sample(cli.eval_rows, run_args.seq_len, np.random.default_rng(12345)), device)
     print(f"{cli.run}: {run_args.method}, M = {num_prior} prior + {len(multitask) - num_prior} own episodes, "
-          f"{cli.updates} updates x {len(cli.seeds)} seeds per start, {device}", flush=True)
+          f"{cli.updates} updates x {len(cli.seeds)} seeds per start, {device}; logit scale {cli.logit_scale:g}, "
+          f"x embedded by {'a frozen copy of f_φ' if cli.x_embedding == 'frozen' else 'f_φ'}, "
+          f"lr {cli.lr or run_args.address_lr:g}", flush=True)
 
     rows = []  # one per (start, seed, scoring)
     for start in cli.starts:
         for seed in cli.seeds:
             torch.manual_seed(seed)
             rng = np.random.default_rng(seed)
-            addressing = rd.Addressing(obs_shape, action_size, run_args, device)
+            addressing = VariantAddressing(obs_shape, action_size, run_args, device, cli.logit_scale)
             if start == "run":
                 load_weights(addressing.net, saved_address["net"], os.path.join(run_path, "address.pt"))
                 addressing.opt.load_state_dict(saved_address["opt"])
+            if cli.x_embedding == "frozen":
+                addressing.freeze_x()
+            for group in addressing.opt.param_groups:
+                group["lr"] = cli.lr or run_args.address_lr
             t0 = time.perf_counter()
             for update in range(cli.updates + 1):
                 if update % cli.eval_every == 0 or update == cli.updates:
