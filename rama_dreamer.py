@@ -31,6 +31,7 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering; must be set before mujoco is imported
 
+import copy
 import dataclasses
 import fcntl
 import functools
@@ -208,6 +209,8 @@ class Args:
     """feed f_φ the stored reward of each step too (not in the paper)"""
     address_stop_grad_x: Optional[bool] = None
     """no gradient through f(x); None = on for rrama, rbrama; off for vrama"""
+    address_x_net: Literal["shared", "frozen"] = "shared"
+    """f(x) by f_φ itself (the paper) or by a frozen copy of its initial weights (not in the paper; see README)"""
     address_standardize: bool = True
     """standardise the REINFORCE advantages over the batch (as the authors' code does)"""
     address_refresh: int = 100
@@ -288,6 +291,9 @@ ADDRESSED_METHODS = ("vrama", "rrama", "rbrama")
 # flags come from the run's args.json
 RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
                 "plain_log", "log_interval_seconds", "precision", "channels_last", "prefetch")
+# flags added after runs were saved, with the value that was those runs' only behaviour: an args.json without one
+# resumes with this value; any other missing flag is refused
+ADDED_FLAGS = {"address_x_net": "shared"}
 
 
 class UsageError(Exception):
@@ -1088,6 +1094,9 @@ class Addressing:
                               args.address_layer_norm, args.address_reward_input)
         self.net = set_speed_options(self.net, args.precision, args.channels_last).to(device)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr, eps=args.adam_eps)
+        # f(x)'s network: f_φ itself, or a frozen copy of its initial weights. Under the stop-gradient a step of φ
+        # is meant to move f(M_j) only (Section 4.3), yet the shared weights move f(x) with it (README, deviations)
+        self.x_net = self.net if args.address_x_net == "shared" else copy.deepcopy(self.net).requires_grad_(False)
         self.method, self.device = args.method, device
         self.stop_grad_x = args.address_stop_grad_x
         if self.stop_grad_x is None:
@@ -1097,11 +1106,16 @@ class Addressing:
         self.D = None  # (N_c, U)
 
     def embed(self, batch: dict):
+        """f_φ(M_j): (B, U)."""
         return self.net(batch["obs"], batch["action"], batch["reward"])
+
+    def embed_x(self, batch: dict):
+        """f(x_i), by x_net: (B, U)."""
+        return self.x_net(batch["obs"], batch["action"], batch["reward"])
 
     def train(self, agent: Agent, x: dict, m_batch: dict, args: Args) -> dict:
         """(a) of Algorithm 2: score m multitask chunks against each x_i, sample j, step φ on Eq. 1, 2 or 3."""
-        logits = address_logits(self.embed(x), self.embed(m_batch), self.stop_grad_x)  # (n, m)
+        logits = address_logits(self.embed_x(x), self.embed(m_batch), self.stop_grad_x)  # (n, m)
         metrics = {}
         if self.method == "vrama":
             one_hot, index = straight_through_sample(logits)
@@ -1138,7 +1152,7 @@ class Addressing:
     @torch.no_grad()
     def probs(self, x: dict):
         """q̂(j | x_i) ∝ exp(f(x_i)ᵀ D_j) over the candidates: (n, N_c)."""
-        return (self.embed(x) @ self.D.T).softmax(-1)
+        return (self.embed_x(x) @ self.D.T).softmax(-1)
 
     def pick(self, x: dict):
         """Candidate indices drawn from q̂ for each row of x: (n,) numpy."""
@@ -1467,7 +1481,7 @@ def resolve_run(args: Args, given: set):
                          f"not be given with it (only {', '.join(flag(n) for n in RESUME_FLAGS)})")
     try:
         with open(args_path) as f:
-            saved = json.load(f)
+            saved = {**ADDED_FLAGS, **json.load(f)}
         missing = sorted(flag(f.name) for f in dataclasses.fields(Args) if f.name not in saved)
         if missing:  # a default filled in here could differ from what the run was trained with
             raise UsageError(f"saved by an older version of this script (no {', '.join(missing)}); resume it with that "
@@ -1632,6 +1646,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                     save_checkpoint(checkpoint_path, agent, state, args)
                     if addressing is not None:
                         write_checkpoint(address_path, {"net": addressing.net.state_dict(),
+                                                        "x_net": addressing.x_net.state_dict(),
                                                         "opt": addressing.opt.state_dict(), "args": checked_args(args)})
                     logger.log(env_steps, metrics)
                 check_stop()
@@ -1723,6 +1738,7 @@ def main(args: Args, given: frozenset = frozenset()):
         addressing = Addressing(obs_shape, action_size, args, device)
         if saved_address is not None:
             load_state(address_path, addressing.net, saved_address["net"])
+            load_state(address_path, addressing.x_net, saved_address.get("x_net", saved_address["net"]))
             addressing.opt.load_state_dict(saved_address["opt"])
 
     # Algorithm 1: tasks in order; the agent restarts per task, M and f_φ carry over

@@ -81,6 +81,25 @@ def test_stop_grad_on_fx():
     assert not rd.Addressing((3,), 2, rd.Args(method="vrama", **SMALL), "cpu").stop_grad_x
 
 
+def test_frozen_x_net_keeps_f_of_x_still_while_phi_learns():
+    rng = np.random.default_rng(0)
+    replay = synthetic_replay((3,), 2, 2, 20, rng)
+    x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
+    for x_net in ("shared", "frozen"):
+        args = rd.Args(obs_type="state", method="rrama", address_x_net=x_net, **SMALL)
+        agent = rd.Agent((3,), 2, args)
+        torch.manual_seed(0)
+        addressing = rd.Addressing((3,), 2, args, "cpu")
+        assert (addressing.x_net is addressing.net) == (x_net == "shared")  # the paper: one f_φ for x and M_j
+        x_before, m_before = addressing.embed_x(x).detach(), addressing.embed(m).detach()
+        assert torch.equal(x_before, addressing.net(x["obs"], x["action"]).detach())  # a copy: the same start
+        for _ in range(3):
+            addressing.train(agent, x, m, args)
+        assert not torch.allclose(addressing.embed(m), m_before)  # f(M_j) learned either way
+        # under the stop-gradient the shared weights still move f(x); the frozen copy does not
+        assert torch.equal(addressing.embed_x(x), x_before) == (x_net == "frozen")
+
+
 def test_vrama_gradient_reaches_phi_only():
     args = rd.Args(obs_type="state", method="vrama", **SMALL)
     agent = rd.Agent((3,), 2, args)
@@ -335,6 +354,21 @@ def test_methods_run_without_prior_dirs(tmp_path, method):
     run("--env-id", "dmc/walker-stand", "--method", method, "--run-dir", str(tmp_path), *TINY)
     keys = metric_keys(glob.glob(os.path.join(tmp_path, "*"))[0])
     assert "addressing/pick_fraction/walker-stand" in keys and "addressing/loss" in keys
+
+
+@pytest.mark.slow
+def test_frozen_x_net_is_saved_and_resumed(tmp_path, prior_run):
+    args = ["--env-id", "dmc/walker-walk", "--method", "rrama", "--prior-dirs", prior_run, "--run-dir", str(tmp_path),
+            *TINY, "--prior-min-return", "0", "--address-x-net", "frozen"]
+    run(*args)
+    run_path = glob.glob(os.path.join(tmp_path, "*"))[0]
+    saved = torch.load(os.path.join(run_path, "address.pt"), weights_only=False)
+    # f_φ trained; x_net is its initial weights, so the two differ
+    assert any(not torch.equal(v, saved["x_net"][k]) for k, v in saved["net"].items())
+    run("--resume", run_path, "--total-steps", "500")
+    resumed = torch.load(os.path.join(run_path, "address.pt"), weights_only=False)
+    assert all(torch.equal(v, saved["x_net"][k]) for k, v in resumed["x_net"].items())  # still the same copy
+    assert any(not torch.equal(v, saved["net"][k]) for k, v in resumed["net"].items())  # f_φ learned on
 
 
 @pytest.mark.slow

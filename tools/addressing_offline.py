@@ -21,7 +21,8 @@ Three knobs test why f_φ may not follow its objective; the defaults are the run
     --logit-scale s   multiply the logits f(x)ᵀ f(M_j) by s (1/√U is a transformer's scale): does q̂ saturate?
     --x-embedding frozen   embed x with a frozen copy of the starting f_φ, so that a step of φ moves f(M_j) only
                       (the paper's stop-gradient on f(x) stops the gradient, yet the shared weights still move
-                      f(x)): does the shared embedding pull q̂ toward chunks that look like x?
+                      f(x)): does the shared embedding pull q̂ toward chunks that look like x? (The training
+                      scripts have it as --address-x-net frozen.)
     --lr              f_φ's Adam learning rate instead of the run's --address-lr
 
 M is rebuilt as the run built it at its end: the prior episodes (--prior-dirs, --prior-min-return, K drawn with the
@@ -78,33 +79,19 @@ class Args:
 
 
 class VariantAddressing(rd.Addressing):
-    """The script's Addressing with the check's knobs. Addressing.train embeds x and M with one method, embed; this
-    class tells them apart by the x batch it was handed (its dict object), so that the objective's code is the
-    script's own."""
+    """The script's Addressing with the check's knobs: the logits scaled (through f(M_j), which D holds too), and
+    f(x) from a frozen copy of the starting f_φ (the script's --address-x-net frozen freezes the initial weights;
+    this also freezes the run's own trained f_φ for --starts run)."""
 
     def __init__(self, obs_shape, action_size: int, run_args: rd.Args, device, logit_scale: float):
         super().__init__(obs_shape, action_size, run_args, device)
         self.logit_scale = logit_scale
-        self.x_net = None  # set by freeze_x: the frozen copy that embeds x
-        self.x_batch = None  # the x of the current train call
 
     def freeze_x(self):
         self.x_net = copy.deepcopy(self.net).requires_grad_(False)
 
-    def embed_x(self, batch: dict):
-        return (self.x_net or self.net)(batch["obs"], batch["action"], batch["reward"])  # (B, U)
-
     def embed(self, batch: dict):
-        if batch is self.x_batch:
-            return self.embed_x(batch)
-        return self.logit_scale * self.net(batch["obs"], batch["action"], batch["reward"])  # (B, U): f(M_j), scaled
-
-    def train(self, agent, x: dict, m_batch: dict, args: rd.Args) -> dict:
-        self.x_batch = x
-        try:
-            return super().train(agent, x, m_batch, args)
-        finally:
-            self.x_batch = None
+        return self.logit_scale * super().embed(batch)  # (B, U): f(M_j), scaled
 
 
 def load_weights(module: torch.nn.Module, state: dict, path: str):
@@ -215,6 +202,8 @@ def main(cli: Args):
             addressing = VariantAddressing(obs_shape, action_size, run_args, device, cli.logit_scale)
             if start == "run":
                 load_weights(addressing.net, saved_address["net"], os.path.join(run_path, "address.pt"))
+                if addressing.x_net is not addressing.net:  # a run with --address-x-net frozen
+                    load_weights(addressing.x_net, saved_address["x_net"], os.path.join(run_path, "address.pt"))
                 addressing.opt.load_state_dict(saved_address["opt"])
             if cli.x_embedding == "frozen":
                 addressing.freeze_x()
