@@ -1837,7 +1837,8 @@ def main(args: Args, given: frozenset = frozenset()):
         addressing = Addressing(obs_shape, action_size, args, device)
         if saved_address is not None:
             load_state(address_path, addressing.net, saved_address["net"])
-            load_state(address_path, addressing.x_net, saved_address.get("x_net", saved_address["net"]))
+            if addressing.x_net is not addressing.net:  # --address-x-net frozen: its saved initial weights
+                load_state(address_path, addressing.x_net, saved_address["x_net"])
             addressing.opt.load_state_dict(saved_address["opt"])
 
     # Algorithm 1: tasks in order; the agent restarts per task, M and f_φ carry over

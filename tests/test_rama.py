@@ -1,4 +1,5 @@
 """RAMa: the addressing math (Eqs. 1-3), batch mixing and masking, prior folders, and runs of every method."""
+import dataclasses
 import glob
 import json
 import os
@@ -436,9 +437,8 @@ def test_offline_variants_scale_the_logits_and_freeze_the_x_embedding():
     assert torch.allclose(scaled.embed(m), 0.25 * plain.embed(m)) and torch.equal(scaled.embed_x(x), plain.embed_x(x))
     for frozen in (False, True):
         torch.manual_seed(0)
-        addressing = VariantAddressing((3,), 2, args, "cpu", logit_scale=1.0)
-        if frozen:
-            addressing.freeze_x()
+        x_net = "frozen" if frozen else "shared"
+        addressing = VariantAddressing((3,), 2, dataclasses.replace(args, address_x_net=x_net), "cpu", logit_scale=1.0)
         x_before, m_before = addressing.embed_x(x).detach(), addressing.embed(m).detach()
         seen = []
         real_embed_x = addressing.embed_x

@@ -19,10 +19,10 @@ and prints a Markdown table of the mean over seeds with the 95% t-interval; --ou
 
 Three knobs test why f_φ may not follow its objective; the defaults are the run's own f_φ (the paper's):
     --logit-scale s   multiply the logits f(x)ᵀ f(M_j) by s (1/√U is a transformer's scale): does q̂ saturate?
-    --x-embedding frozen   embed x with a frozen copy of the starting f_φ, so that a step of φ moves f(M_j) only
-                      (the paper's stop-gradient on f(x) stops the gradient, yet the shared weights still move
-                      f(x)): does the shared embedding pull q̂ toward chunks that look like x? (The training
-                      scripts have it as --address-x-net frozen.)
+    --x-embedding frozen   embed x with a frozen copy of the starting f_φ (the training scripts'
+                      --address-x-net frozen), so that a step of φ moves f(M_j) only (the paper's stop-gradient on
+                      f(x) stops the gradient, yet the shared weights still move f(x)): does the shared embedding
+                      pull q̂ toward chunks that look like x?
     --lr              f_φ's Adam learning rate instead of the run's --address-lr
 
 M is rebuilt as the run built it at its end: the prior episodes (--prior-dirs, --prior-min-return, K drawn with the
@@ -33,7 +33,6 @@ Run (from the repository root):
     python tools/addressing_offline.py runs/cartpole_tables/balance__rrama__s1/<run> --out results/x.json
     python tools/addressing_offline.py <run> --starts fresh --updates 600 --seeds 0 1 2 3 4
 """
-import copy
 import dataclasses
 import json
 import os
@@ -73,22 +72,18 @@ class Args:
     logit_scale: float = 1.0
     """multiply the logits f(x)ᵀ f(M_j) by this (1: the paper's plain dot product)"""
     x_embedding: Literal["shared", "frozen"] = "shared"
-    """`shared`: x is embedded by f_φ itself (the paper); `frozen`: by a frozen copy of the starting f_φ"""
+    """`shared`: x is embedded as the run did (by f_φ itself, the paper); `frozen`: by a frozen copy of the starting
+    f_φ (for --starts run, the run's trained f_φ, or its own frozen copy if it had one)"""
     lr: Optional[float] = None
     """f_φ's learning rate (default: the run's --address-lr)"""
 
 
 class VariantAddressing(rd.Addressing):
-    """The script's Addressing with the check's knobs: the logits scaled (through f(M_j), which D holds too), and
-    f(x) from a frozen copy of the starting f_φ (the script's --address-x-net frozen freezes the initial weights;
-    this also freezes the run's own trained f_φ for --starts run)."""
+    """The script's Addressing with the logits scaled (through f(M_j), which D holds too)."""
 
     def __init__(self, obs_shape, action_size: int, run_args: rd.Args, device, logit_scale: float):
         super().__init__(obs_shape, action_size, run_args, device)
         self.logit_scale = logit_scale
-
-    def freeze_x(self):
-        self.x_net = copy.deepcopy(self.net).requires_grad_(False)
 
     def embed(self, batch: dict):
         return self.logit_scale * super().embed(batch)  # (B, U): f(M_j), scaled
@@ -180,6 +175,8 @@ def main(cli: Args):
     if cli.logit_scale <= 0 or (cli.lr is not None and cli.lr <= 0):
         raise rd.UsageError("--logit-scale and --lr must be > 0")
     device = rd.resolve_device(cli.device)
+    lr = cli.lr or run_args.address_lr
+    address_args = dataclasses.replace(run_args, address_x_net="frozen") if cli.x_embedding == "frozen" else run_args
     multitask, own, num_prior, obs_shape, action_size, task_path = rebuild_buffers(run_args, run_path)
     checkpoint = rd.read_checkpoint(os.path.join(task_path, "checkpoint.pt"), run_args)
     saved_address = rd.read_checkpoint(os.path.join(run_path, "address.pt"), run_args)
@@ -192,23 +189,22 @@ def main(cli: Args):
     print(f"{cli.run}: {run_args.method}, M = {num_prior} prior + {len(multitask) - num_prior} own episodes, "
           f"{cli.updates} updates x {len(cli.seeds)} seeds per start, {device}; logit scale {cli.logit_scale:g}, "
           f"x embedded by {'a frozen copy of f_φ' if cli.x_embedding == 'frozen' else 'f_φ'}, "
-          f"lr {cli.lr or run_args.address_lr:g}", flush=True)
+          f"lr {lr:g}", flush=True)
 
     rows = []  # one per (start, seed, scoring)
     for start in cli.starts:
         for seed in cli.seeds:
             torch.manual_seed(seed)
             rng = np.random.default_rng(seed)
-            addressing = VariantAddressing(obs_shape, action_size, run_args, device, cli.logit_scale)
+            addressing = VariantAddressing(obs_shape, action_size, address_args, device, cli.logit_scale)
             if start == "run":
                 load_weights(addressing.net, saved_address["net"], os.path.join(run_path, "address.pt"))
-                if addressing.x_net is not addressing.net:  # a run with --address-x-net frozen
-                    load_weights(addressing.x_net, saved_address["x_net"], os.path.join(run_path, "address.pt"))
+                if addressing.x_net is not addressing.net:  # frozen: the run's own copy, or else its trained f_φ
+                    load_weights(addressing.x_net, saved_address.get("x_net", saved_address["net"]),
+                                 os.path.join(run_path, "address.pt"))
                 addressing.opt.load_state_dict(saved_address["opt"])
-            if cli.x_embedding == "frozen":
-                addressing.freeze_x()
             for group in addressing.opt.param_groups:
-                group["lr"] = cli.lr or run_args.address_lr
+                group["lr"] = lr
             t0 = time.perf_counter()
             for update in range(cli.updates + 1):
                 if update % cli.eval_every == 0 or update == cli.updates:
