@@ -18,6 +18,10 @@ script makes its own timestamped run folder inside). Rerunning the same sweep is
 - the rest start fresh.
 After a run finishes, its args.json and metrics.jsonl are copied to results/<experiment>/<run>/ (small, meant to be
 committed; episodes and checkpoints stay in runs/). Then `DONE` is written and one progress line is printed.
+A cell with `keep_episodes_min_return = R` (for a prior made from state vectors, whose episodes are small) also has
+its runs' episodes with a return of at least R copied there (<run>/episodes/). Committed, they are that prior's data
+on another machine, so the prior does not run again there (it would take hours). The runs that use it must filter
+at R or above (--prior-min-return), since only those episodes are kept: the spec is refused otherwise.
 The script's output goes to <run folder>/log.txt. Changing a spec's flags does not restart done runs, and --resume
 keeps a run's saved flags: delete a run's folder to start it again. One exception, to raise a grid's budget: a done
 run whose saved --total-steps is below the spec's is not done; it resumes with the spec's --total-steps (or, with
@@ -51,7 +55,8 @@ ROOT = os.path.dirname(os.path.abspath(__file__))
 METHODS = ("dreamer", "uniform", "vrama", "rrama", "rbrama")  # the scripts' --method choices
 MANAGED = ("--run-dir", "--resume", "--seed", "--prior-dirs")  # the sweep sets these itself
 SPEC_KEYS = {"experiment", "script", "flags", "seeds", "cpus", "gpus", "cells"}
-CELL_KEYS = {"flags", "methods", "seeds", "prior", "prior_dirs", "method_flags", "cpus", "gpus"}
+CELL_KEYS = {"flags", "methods", "seeds", "prior", "prior_dirs", "method_flags", "cpus", "gpus",
+             "keep_episodes_min_return"}
 
 
 class SpecError(Exception):
@@ -77,6 +82,7 @@ class Run:
     deps: list  # names of the runs whose run folders join --prior-dirs
     cpus: float
     gpus: float
+    keep_episodes_min_return: float = None  # episodes at or above this return are copied to results/ too
 
 
 def split_flags(flags) -> list:
@@ -142,9 +148,15 @@ def load_spec(path: str, runs_dir: str = "runs", results_dir: str = "results"):
                         if not same_seed:  # only runs above can be priors, so dependencies never form a cycle
                             raise SpecError(f"{where}: prior {prior!r} names no run with seed {seed} above {name}")
                         deps += same_seed
+                    for dep in deps:  # kept episodes stand in for the run folder: the same M only at or above R
+                        keep, wanted = runs[dep].keep_episodes_min_return, last_value(flags, "--prior-min-return")
+                        if keep is not None and (wanted is None or float(wanted) < keep):
+                            raise SpecError(f"{where}: {name} filters its prior {dep} at --prior-min-return {wanted},"
+                                            f" below that cell's keep_episodes_min_return = {keep}")
                 runs[name] = Run(name, os.path.join(runs_dir, experiment, name),
                                  os.path.join(results_dir, experiment, name), script, flags, outside, deps,
-                                 float(c.get("cpus", spec.get("cpus", 1))), float(c.get("gpus", spec.get("gpus", 0))))
+                                 float(c.get("cpus", spec.get("cpus", 1))), float(c.get("gpus", spec.get("gpus", 0))),
+                                 c.get("keep_episodes_min_return"))
     if not runs:
         raise SpecError(f"{path}: no cells")
     return experiment, list(runs.values())
@@ -156,6 +168,16 @@ def run_folder(folder: str):
     if len(found) > 1:
         raise RunFailed(f"{folder}: {len(found)} run folders inside, expected one: delete the extra ones")
     return os.path.dirname(found[0]) if found else None
+
+
+def kept_episodes(run: Run):
+    """The run's episodes committed under results/ (keep_episodes_min_return), or None."""
+    return run.results if glob.glob(os.path.join(run.results, "**", "[0-9]*.npz"), recursive=True) else None
+
+
+def prior_data(run: Run):
+    """Where a prior run's episodes are: its run folder here, else its episodes committed under results/."""
+    return run_folder(run.folder) or kept_episodes(run)
 
 
 def is_done(run: Run) -> bool:
@@ -186,9 +208,9 @@ def with_priors(runs: list, names: set, needed=lambda run: True) -> list:
 
 
 def to_run(runs: list) -> list:
-    """The runs not done, plus the done priors they need whose run folders are not here (done on another machine,
-    with only their results committed): those run again, since their episodes are the prior data."""
-    return with_priors(runs, {r.name for r in runs if not is_done(r)}, lambda prior: not run_folder(prior.folder))
+    """The runs not done, plus the done priors they need whose episodes are not here (done on another machine, with
+    only their args and metrics committed): those run again, since their episodes are the prior data."""
+    return with_priors(runs, {r.name for r in runs if not is_done(r)}, lambda prior: not prior_data(prior))
 
 
 def select(runs: list, patterns: list) -> list:
@@ -204,9 +226,10 @@ def command(run: Run, python: str = None) -> list:
         device, steps = last_value(run.flags, "--device"), last_value(run.flags, "--total-steps")
         return ([python, run.script, "--resume", started] + (["--device", device] if device else [])
                 + (["--total-steps", steps] if steps else []))
-    # a prior run's own folder, or its sweep folder when it has not started yet (--dry-run only)
-    priors = [run_folder(os.path.join(os.path.dirname(run.folder), d)) or os.path.join(os.path.dirname(run.folder), d)
-              for d in run.deps] + run.prior_dirs
+    # a prior run's own folder, or its kept episodes, or its sweep folder when it has not started yet (--dry-run only)
+    sibling = lambda d: dataclasses.replace(run, folder=os.path.join(os.path.dirname(run.folder), d),  # noqa: E731
+                                            results=os.path.join(os.path.dirname(run.results), d))
+    priors = [prior_data(sibling(d)) or sibling(d).folder for d in run.deps] + run.prior_dirs
     return ([python, run.script, *run.flags, "--run-dir", run.folder]
             + (["--prior-dirs", *priors] if priors else []))
 
@@ -219,6 +242,16 @@ def save_results(run: Run):
         target = os.path.join(run.results, os.path.relpath(path, source))
         os.makedirs(os.path.dirname(target), exist_ok=True)
         shutil.copyfile(path, target)
+    if run.keep_episodes_min_return is not None:
+        import numpy as np  # only here: the sweep itself needs no numpy
+
+        for path in sorted(glob.glob(os.path.join(source, "**", "[0-9]*.npz"), recursive=True)):
+            with np.load(path) as episode:
+                if float(episode["return"]) < run.keep_episodes_min_return:
+                    continue
+            target = os.path.join(run.results, os.path.relpath(path, source))  # <run>/episodes/NNNNNN-LEN.npz
+            os.makedirs(os.path.dirname(target), exist_ok=True)
+            shutil.copyfile(path, target)
 
 
 def run_cell(run: Run, threads: int, *_deps) -> dict:

@@ -123,6 +123,51 @@ prior = "prior"
     assert names(sweep.to_run(runs)) == ["task__rrama__s1"]
 
 
+def test_kept_prior_episodes_stand_in_for_a_prior_run_folder_on_another_machine(tmp_path):
+    import numpy as np
+
+    import rama_dreamer as rd
+
+    spec = write_spec(tmp_path, """
+[cells.prior]
+keep_episodes_min_return = 500
+[cells.task]
+methods = ["uniform"]
+prior = "prior"
+flags = "--prior-min-return 500"
+""")
+    prior, task = sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / "results"))[1]
+    assert prior.keep_episodes_min_return == 500
+    # the prior's run folder, with episodes of returns 499.9, 500 and 950 (the script's own episode format)
+    episodes = os.path.join(prior.folder, "dmc_run", "episodes")
+    os.makedirs(episodes)
+    open(os.path.join(prior.folder, "dmc_run", "args.json"), "w").write("{}")
+    for index, ret in enumerate([499.9, 500.0, 950.0]):
+        rd.save_episode(episodes, index, {"obs": np.full((4, 5), index, np.float32), "action": np.zeros((4, 1)),
+                                          "reward": np.zeros(4), "terminal": np.zeros(4, bool), "task": "t",
+                                          "return": np.float32(ret)})
+    sweep.save_results(prior)
+    kept = sorted(os.listdir(os.path.join(prior.results, "episodes")))
+    assert kept == ["000001-3.npz", "000002-3.npz"]  # 499.9 is below R: not kept
+    assert sweep.command(task)[-1] == os.path.join(prior.folder, "dmc_run")  # here, the run folder is the prior
+
+    shutil.rmtree(tmp_path / "runs")  # another machine: only results/ (with the kept episodes) is here
+    assert [r.name for r in sweep.to_run([prior, task])] == ["task__uniform__s1"]  # the prior does not run again
+    assert sweep.command(task)[-2:] == ["--prior-dirs", prior.results]
+    # the script reads the same M from the kept episodes as from the run folder, filtered at R
+    m = rd.load_prior_episodes([prior.results], 500, 1000, (5,), 1, np.random.default_rng(0))
+    assert [float(e["obs"][0, 0]) for e in m] == [1.0, 2.0]
+
+    # without kept episodes, a done prior whose run folder is gone runs again (its episodes are the prior data)
+    shutil.rmtree(os.path.join(prior.results, "episodes"))
+    assert [r.name for r in sweep.to_run([prior, task])] == ["prior__dreamer__s1", "task__uniform__s1"]
+    # a user of kept episodes that filters below R would see a different M on another machine: refused
+    write_spec(tmp_path, open(spec).read().replace("--prior-min-return 500", "--prior-min-return 400"))
+    with pytest.raises(sweep.SpecError, match=r"task__uniform__s1 filters its prior prior__dreamer__s1 at "
+                                              r"--prior-min-return 400, below that cell's keep_episodes_min_return"):
+        sweep.load_spec(spec)
+
+
 def test_a_raised_budget_resumes_done_runs_with_the_new_total_steps(tmp_path):
     """Raising --total-steps in the spec makes a done run not done: it resumes with the spec's budget (the script
     accepts --total-steps beside --resume); one with only committed results runs again. Lowering it changes nothing."""
