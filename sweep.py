@@ -148,8 +148,9 @@ def load_spec(path: str, runs_dir: str = "runs", results_dir: str = "results"):
                         if not same_seed:  # only runs above can be priors, so dependencies never form a cycle
                             raise SpecError(f"{where}: prior {prior!r} names no run with seed {seed} above {name}")
                         deps += same_seed
+                    wanted = last_value(flags, "--prior-min-return")
                     for dep in deps:  # kept episodes stand in for the run folder: the same M only at or above R
-                        keep, wanted = runs[dep].keep_episodes_min_return, last_value(flags, "--prior-min-return")
+                        keep = runs[dep].keep_episodes_min_return
                         if keep is not None and (wanted is None or float(wanted) < keep):
                             raise SpecError(f"{where}: {name} filters its prior {dep} at --prior-min-return {wanted},"
                                             f" below that cell's keep_episodes_min_return = {keep}")
@@ -227,31 +228,30 @@ def command(run: Run, python: str = None) -> list:
         return ([python, run.script, "--resume", started] + (["--device", device] if device else [])
                 + (["--total-steps", steps] if steps else []))
     # a prior run's own folder, or its kept episodes, or its sweep folder when it has not started yet (--dry-run only)
-    sibling = lambda d: dataclasses.replace(run, folder=os.path.join(os.path.dirname(run.folder), d),  # noqa: E731
-                                            results=os.path.join(os.path.dirname(run.results), d))
-    priors = [prior_data(sibling(d)) or sibling(d).folder for d in run.deps] + run.prior_dirs
+    deps = [dataclasses.replace(run, folder=os.path.join(os.path.dirname(run.folder), d),
+                                results=os.path.join(os.path.dirname(run.results), d)) for d in run.deps]
+    priors = [prior_data(dep) or dep.folder for dep in deps] + run.prior_dirs
     return ([python, run.script, *run.flags, "--run-dir", run.folder]
             + (["--prior-dirs", *priors] if priors else []))
 
 
 def save_results(run: Run):
-    """Copy args.json and every metrics.jsonl (one per task of a --task-sequence run) to the run's results folder."""
+    """Copy args.json and every metrics.jsonl (one per task of a --task-sequence run) to the run's results folder,
+    and with keep_episodes_min_return, the episodes at or above it (<run>/episodes/NNNNNN-LEN.npz)."""
     source = run_folder(run.folder)
-    for path in [os.path.join(source, "args.json")] + glob.glob(os.path.join(source, "**", "metrics.jsonl"),
-                                                                recursive=True):
-        target = os.path.join(run.results, os.path.relpath(path, source))
-        os.makedirs(os.path.dirname(target), exist_ok=True)
-        shutil.copyfile(path, target)
+    paths = [os.path.join(source, "args.json")] + glob.glob(os.path.join(source, "**", "metrics.jsonl"), recursive=True)
     if run.keep_episodes_min_return is not None:
         import numpy as np  # only here: the sweep itself needs no numpy
 
-        for path in sorted(glob.glob(os.path.join(source, "**", "[0-9]*.npz"), recursive=True)):
+        def kept(path):
             with np.load(path) as episode:
-                if float(episode["return"]) < run.keep_episodes_min_return:
-                    continue
-            target = os.path.join(run.results, os.path.relpath(path, source))  # <run>/episodes/NNNNNN-LEN.npz
-            os.makedirs(os.path.dirname(target), exist_ok=True)
-            shutil.copyfile(path, target)
+                return float(episode["return"]) >= run.keep_episodes_min_return
+
+        paths += [p for p in sorted(glob.glob(os.path.join(source, "**", "[0-9]*.npz"), recursive=True)) if kept(p)]
+    for path in paths:
+        target = os.path.join(run.results, os.path.relpath(path, source))
+        os.makedirs(os.path.dirname(target), exist_ok=True)
+        shutil.copyfile(path, target)
 
 
 def run_cell(run: Run, threads: int, *_deps) -> dict:
