@@ -102,7 +102,7 @@ class Args:
     precision: Literal["fp32", "bf16"] = "fp32"
     """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
     channels_last: bool = True
-    """conv weights and activations in channels-last layout (faster convs on CPU and GPU)"""
+    """conv weights and activations in channels-last layout (10% faster updates on CPU; no change on an H100)"""
     prefetch: bool = True
     """sample (and pin) the next batch in a background thread while the current update trains"""
     num_envs: int = 1

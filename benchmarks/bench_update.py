@@ -14,6 +14,7 @@ Run (from the repository root):
     python benchmarks/bench_update.py --device cuda --sizes paper --updates 5 --precision fp32
     python benchmarks/bench_update.py --device cpu --sizes paper --updates 2 --no-collection
     python benchmarks/bench_update.py --device cuda --profile          # the operators of one paper-size update
+    python benchmarks/bench_update.py --device cpu --ab-flag channels-last --methods dreamer --updates 6
     python benchmarks/bench_update.py --script rama_metaworld --env-id metaworld/push --num-envs 4
 """
 import dataclasses
@@ -23,7 +24,7 @@ import platform
 import sys
 import time
 from dataclasses import dataclass
-from typing import Literal, Tuple
+from typing import Literal, Optional, Tuple
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)  # the training scripts sit in the repository root
@@ -55,6 +56,8 @@ class Options:
     """instead of the timings: profile one paper-size `dreamer` update and print the operators that take the time"""
     collection: bool = True
     """also time collection (env steps per second, 1 env and --num-envs envs, on --env-id)"""
+    ab_flag: Optional[str] = None
+    """instead of the table: a boolean speed flag (e.g. channels-last) on against off, --updates pairs in one process"""
 
 
 def script_flag(argv: list) -> str:
@@ -171,6 +174,47 @@ def time_updates(S, options: Options, args, device: torch.device, obs_shape, act
                   flush=True)
 
 
+def ab_flag(S, options: Options, args, device: torch.device, obs_shape, action_size: int, replay, multitask,
+            rng) -> None:
+    """Paired timing of one boolean flag, on against off: two agents in one process, their updates alternating (which
+    goes first alternates too), so the drift of a noisy machine falls on both. Separate commands differed by ±10% on
+    the H100 from one command to the next, more than the effects measured."""
+    name = options.ab_flag.replace("-", "_")
+    if not isinstance(getattr(args, name, None), bool):
+        bools = ", ".join(f.name.replace("_", "-") for f in dataclasses.fields(args) if isinstance(f.default, bool))
+        raise S.UsageError(f"--ab-flag {options.ab_flag}: not a boolean flag of {options.script} (one of {bools})")
+    n, length = SIZES[options.sizes[0]]
+    print(f"{'device':<6} {'size':<6} {'method':<8} {'flag':<14} {'on: median s':>13} {'off: median s':>14} "
+          f"{'off/on (paired median)':>23} {'pairs on faster':>16}", flush=True)
+    for method in options.methods:
+        runs = {}
+        for value in (True, False):
+            run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method, **{name: value})
+            torch.manual_seed(args.seed)  # the same initial weights for both
+            agent = S.Agent(obs_shape, action_size, run_args).to(device)
+            addressing = S.Addressing(obs_shape, action_size, run_args, device) \
+                if method in S.ADDRESSED_METHODS else None
+            sampler = S.ChunkSampler(replay, n, length, np.random.default_rng(args.seed), device, run_args.prefetch)
+            runs[value] = (run_args, agent, addressing, sampler, sampler.batches(options.updates + 1), [])
+        for i in range(options.updates + 1):  # round 0 warms both up (and refreshes D)
+            for value in ((True, False) if i % 2 else (False, True)):
+                run_args, agent, addressing, _, batches, seconds = runs[value]
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                t0 = time.perf_counter()
+                S.update(agent, next(batches)[0], multitask, addressing, run_args, rng, device, "current", i)
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                if i > 0:
+                    seconds.append(time.perf_counter() - t0)
+        on, off = np.array(runs[True][5]), np.array(runs[False][5])  # (updates,) seconds each
+        for run in runs.values():
+            run[3].close()
+        print(f"{device.type:<6} {options.sizes[0]:<6} {method:<8} {options.ab_flag:<14} {np.median(on):>13.3f} "
+              f"{np.median(off):>14.3f} {np.median(off / on):>23.3f} {f'{np.sum(off > on)}/{len(on)}':>16}",
+              flush=True)
+
+
 def main(S, options: Options, args) -> None:
     """Seconds per full update per method and size, on CPU and on CUDA when present (--device auto), or on --device."""
     args = S.resolve_defaults(args)
@@ -192,6 +236,8 @@ def main(S, options: Options, args) -> None:
     multitask = synthetic_replay(S.Replay(), obs_shape, action_size, episodes=4, length=500, rng=rng, task="prior")
     for episode in replay.episodes:
         multitask.add(episode)
+    if options.ab_flag:
+        return ab_flag(S, options, args, torch.device(devices[-1]), obs_shape, action_size, replay, multitask, rng)
     if options.profile:
         return profile_update(S, args, obs_shape, action_size, replay, multitask, rng, torch.device(devices[-1]))
     print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "

@@ -208,3 +208,20 @@ def test_benchmark_refuses_a_bad_flag_in_one_line():
     proc = run_script(os.path.join("benchmarks", "bench_update.py"), "--updates", "0", "--obs-type", "state",
                       check=False, timeout=60)
     assert proc.returncode == 2 and proc.stderr.strip() == "error: --updates must be > 0 (got 0)", proc.stderr
+
+
+@pytest.mark.slow
+def test_benchmark_ab_flag_times_on_against_off_in_pairs():
+    tiny = ["--obs-type", "state", "--sizes", "small", "--device", "cpu", "--no-collection", "--deter-size", "8",
+            "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8", "--horizon", "3"]
+    proc = bench("--ab-flag", "prefetch", "--methods", "dreamer", "rrama", "--updates", "3", *tiny)
+    header, columns, *rows = proc.stdout.splitlines()
+    assert columns.split()[:4] == ["device", "size", "method", "flag"]
+    rows = [r.split() for r in rows]
+    assert [(r[0], r[1], r[2], r[3]) for r in rows] == [("cpu", "small", m, "prefetch") for m in ("dreamer", "rrama")]
+    assert all(float(r[4]) > 0 and float(r[5]) > 0 and float(r[6]) > 0 for r in rows)
+    assert all(r[7].endswith("/3") and 0 <= int(r[7].split("/")[0]) <= 3 for r in rows)  # pairs on faster / pairs
+    bad = run_script(os.path.join("benchmarks", "bench_update.py"), "--ab-flag", "horizon", *tiny, check=False,
+                     timeout=60)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
+    assert bad.stderr.startswith("error: --ab-flag horizon: not a boolean flag of rama_dreamer"), bad.stderr
