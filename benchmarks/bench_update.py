@@ -57,7 +57,7 @@ class Options:
     collection: bool = True
     """also time collection (env steps per second, 1 env and --num-envs envs, on --env-id)"""
     ab_flag: Optional[str] = None
-    """instead of the table: a boolean speed flag (e.g. channels-last) on against off, --updates pairs in one process"""
+    """instead of the table: a boolean flag (e.g. channels-last) on against off, --updates pairs in one process"""
 
 
 def script_flag(argv: list) -> str:
@@ -123,12 +123,34 @@ def time_collection(S, args, device: torch.device) -> None:
         envs.close()
 
 
+def method_setup(S, args, method: str, n: int, length: int, obs_shape, action_size: int, device, **flags):
+    """The args, agent and (for the addressed methods) f_φ of one timed method at size (n, L), flags overridden."""
+    run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method, **flags)
+    agent = S.Agent(obs_shape, action_size, run_args).to(device)
+    addressing = S.Addressing(obs_shape, action_size, run_args, device) if method in S.ADDRESSED_METHODS else None
+    return run_args, agent, addressing
+
+
+def timed_update(S, setup, batches, multitask, rng, device: torch.device, i: int):
+    """Update i of a method_setup, the wait for its batch included, timed to the end of its GPU work: (seconds, the
+    update's output with that wait in its batch_sampling timing)."""
+    run_args, agent, addressing = setup
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    x, waited = next(batches)
+    out = S.update(agent, x, multitask, addressing, run_args, rng, device, "current", i)
+    out["timings"]["batch_sampling"] += waited
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    return time.perf_counter() - t0, out
+
+
 def profile_update(S, args, obs_shape, action_size: int, replay, multitask, rng, device: torch.device) -> None:
     """Where the time of one paper-size Dreamer update goes, operator by operator (after a warm-up update)."""
     from torch.profiler import ProfilerActivity, profile
 
-    run_args = dataclasses.replace(args, batch_size=50, seq_len=50, method="dreamer")
-    agent = S.Agent(obs_shape, action_size, run_args).to(device)
+    run_args, agent, _ = method_setup(S, args, "dreamer", 50, 50, obs_shape, action_size, device)
     batches = S.ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(2)
     S.update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 0)
     cuda = device.type == "cuda"
@@ -147,24 +169,14 @@ def time_updates(S, options: Options, args, device: torch.device, obs_shape, act
         n, length = SIZES[size]
         reference = None
         for method in options.methods:
-            run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method)
-            agent = S.Agent(obs_shape, action_size, run_args).to(device)
-            addressing = S.Addressing(obs_shape, action_size, run_args, device) \
-                if method in S.ADDRESSED_METHODS else None
+            setup = method_setup(S, args, method, n, length, obs_shape, action_size, device)
             totals = dict.fromkeys(PARTS + ["total"], 0.0)
             sampler = S.ChunkSampler(replay, n, length, rng, device, args.prefetch)
             batches = sampler.batches(options.updates + 1)
             for i in range(options.updates + 1):  # update 0 warms up (and refreshes D, once per C)
-                if device.type == "cuda":
-                    torch.cuda.synchronize()
-                t0 = time.perf_counter()
-                x, waited = next(batches)
-                out = S.update(agent, x, multitask, addressing, run_args, rng, device, "current", i)
-                out["timings"]["batch_sampling"] += waited
-                if device.type == "cuda":
-                    torch.cuda.synchronize()
+                seconds, out = timed_update(S, setup, batches, multitask, rng, device, i)
                 if i > 0:
-                    totals["total"] += (time.perf_counter() - t0) / options.updates
+                    totals["total"] += seconds / options.updates
                     for k in PARTS:
                         totals[k] += out["timings"].get(k, 0.0) / options.updates
             reference = reference or totals["total"]
@@ -176,40 +188,29 @@ def time_updates(S, options: Options, args, device: torch.device, obs_shape, act
 
 def ab_flag(S, options: Options, args, device: torch.device, obs_shape, action_size: int, replay, multitask,
             rng) -> None:
-    """Paired timing of one boolean flag, on against off: two agents in one process, their updates alternating (which
-    goes first alternates too), so the drift of a noisy machine falls on both. Separate commands differed by ±10% on
-    the H100 from one command to the next, more than the effects measured."""
-    name = options.ab_flag.replace("-", "_")
-    if not isinstance(getattr(args, name, None), bool):
-        bools = ", ".join(f.name.replace("_", "-") for f in dataclasses.fields(args) if isinstance(f.default, bool))
-        raise S.UsageError(f"--ab-flag {options.ab_flag}: not a boolean flag of {options.script} (one of {bools})")
+    """Paired timing of one boolean flag, on against off, at the first of --sizes: two agents in one process, their
+    updates alternating (which goes first alternates too), so the drift of a noisy machine falls on both. Separate
+    commands differed by ±10% on the H100 from one command to the next, more than the effects measured."""
+    name = options.ab_flag.replace("-", "_")  # main checked that it is a boolean flag
     n, length = SIZES[options.sizes[0]]
     print(f"{'device':<6} {'size':<6} {'method':<8} {'flag':<14} {'on: median s':>13} {'off: median s':>14} "
           f"{'off/on (paired median)':>23} {'pairs on faster':>16}", flush=True)
     for method in options.methods:
-        runs = {}
+        setups, samplers, batches, seconds = {}, {}, {}, {True: [], False: []}
         for value in (True, False):
-            run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method, **{name: value})
             torch.manual_seed(args.seed)  # the same initial weights for both
-            agent = S.Agent(obs_shape, action_size, run_args).to(device)
-            addressing = S.Addressing(obs_shape, action_size, run_args, device) \
-                if method in S.ADDRESSED_METHODS else None
-            sampler = S.ChunkSampler(replay, n, length, np.random.default_rng(args.seed), device, run_args.prefetch)
-            runs[value] = (run_args, agent, addressing, sampler, sampler.batches(options.updates + 1), [])
+            setups[value] = method_setup(S, args, method, n, length, obs_shape, action_size, device, **{name: value})
+            samplers[value] = S.ChunkSampler(replay, n, length, np.random.default_rng(args.seed), device,
+                                             setups[value][0].prefetch)
+            batches[value] = samplers[value].batches(options.updates + 1)
         for i in range(options.updates + 1):  # round 0 warms both up (and refreshes D)
             for value in ((True, False) if i % 2 else (False, True)):
-                run_args, agent, addressing, _, batches, seconds = runs[value]
-                if device.type == "cuda":
-                    torch.cuda.synchronize()
-                t0 = time.perf_counter()
-                S.update(agent, next(batches)[0], multitask, addressing, run_args, rng, device, "current", i)
-                if device.type == "cuda":
-                    torch.cuda.synchronize()
+                took, _ = timed_update(S, setups[value], batches[value], multitask, rng, device, i)
                 if i > 0:
-                    seconds.append(time.perf_counter() - t0)
-        on, off = np.array(runs[True][5]), np.array(runs[False][5])  # (updates,) seconds each
-        for run in runs.values():
-            run[3].close()
+                    seconds[value].append(took)
+        for sampler in samplers.values():
+            sampler.close()
+        on, off = np.array(seconds[True]), np.array(seconds[False])  # (updates,) each
         print(f"{device.type:<6} {options.sizes[0]:<6} {method:<8} {options.ab_flag:<14} {np.median(on):>13.3f} "
               f"{np.median(off):>14.3f} {np.median(off / on):>23.3f} {f'{np.sum(off > on)}/{len(on)}':>16}",
               flush=True)
@@ -221,6 +222,9 @@ def main(S, options: Options, args) -> None:
     S.check_args(args)
     if options.updates < 1:
         raise S.UsageError(f"--updates must be > 0 (got {options.updates})")
+    if options.ab_flag and not isinstance(getattr(args, options.ab_flag.replace("-", "_"), None), bool):
+        bools = ", ".join(f.name.replace("_", "-") for f in dataclasses.fields(args) if isinstance(f.default, bool))
+        raise S.UsageError(f"--ab-flag {options.ab_flag}: not a boolean flag of {options.script} (one of {bools})")
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
     print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
           f"{torch.__version__} | threads {torch.get_num_threads()}"
