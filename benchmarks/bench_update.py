@@ -222,9 +222,10 @@ def main(S, options: Options, args) -> None:
     S.check_args(args)
     if options.updates < 1:
         raise S.UsageError(f"--updates must be > 0 (got {options.updates})")
-    if options.ab_flag and not isinstance(getattr(args, options.ab_flag.replace("-", "_"), None), bool):
-        bools = ", ".join(f.name.replace("_", "-") for f in dataclasses.fields(args) if isinstance(f.default, bool))
-        raise S.UsageError(f"--ab-flag {options.ab_flag}: not a boolean flag of {options.script} (one of {bools})")
+    bools = [f.name for f in dataclasses.fields(args) if isinstance(getattr(args, f.name), bool)]
+    if options.ab_flag and options.ab_flag.replace("-", "_") not in bools:
+        raise S.UsageError(f"--ab-flag {options.ab_flag}: not a boolean flag of {options.script} "
+                           f"(one of {', '.join(S.flag(n)[2:] for n in bools)})")
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
     print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
           f"{torch.__version__} | threads {torch.get_num_threads()}"
