@@ -73,6 +73,8 @@ class Args:
     """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk`; overrides --env-id"""
     seed: int = 1
     """seed of python, numpy, torch, the environment and every sampler"""
+    preset: Optional[Literal["authors-code"]] = None
+    """`authors-code`: the authors' code's values of the flags in PRESETS (README, deviations); given flags win"""
     device: str = "auto"
     """`auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ..."""
     total_steps: int = 2_000_000
@@ -191,6 +193,10 @@ class Args:
     """m: multitask chunks scored against the current chunks per addressing update"""
     address_lr: float = 1e-3
     """Adam learning rate of the addressing model"""
+    address_adam_eps: Optional[float] = None
+    """epsilon of the addressing model's Adam; None = --adam-eps"""
+    address_weight_decay: float = 0.0
+    """decoupled weight decay of f_φ: each step θ ← (1 − wd)·θ before Adam's (the authors' code: 1e-6)"""
     address_grad_clip: float = 100.0
     """gradient norm clipping of the addressing model"""
     address_units: int = 200
@@ -213,12 +219,26 @@ class Args:
     """f(x) by f_φ itself (the paper) or by a frozen copy of its initial weights (not in the paper; see README)"""
     address_standardize: bool = True
     """standardise the REINFORCE advantages over the batch (as the authors' code does)"""
+    address_candidates_mode: Literal["memory", "fresh"] = "memory"
+    """what q̂ picks from: `memory` (D over M's chunks, Algorithm 2) or `fresh` (m new chunks of M per mixed batch)"""
+    address_logit_scale: float = 1.0
+    """q̂'s logits are multiplied by this before the softmax (the authors' `temp`, read in their memory mode only)"""
+    address_oversample_ends: bool = False
+    """draw M's chunks with start min(U{0..T}, T+1−L), as the authors' replay does: the last chunk ~L/T of the time"""
     address_refresh: int = 100
     """recompute the candidates' embeddings D every this many updates (C in Algorithm 2)"""
     address_candidates: int = 10_000
     """most candidate chunks of M in D (a random subset of M's chunks at each refresh)"""
+    own_episodes_in_m: bool = True
+    """store the run's own episodes in M too (Algorithm 2); off: M holds prior data (and earlier tasks') only"""
+    reward_mask_borrowed: Literal["other-tasks", "all"] = "other-tasks"
+    """which borrowed chunks lose their reward loss: other tasks' (the paper) or all of them (the authors' code)"""
+    vrama_objective: Literal["imagine", "posterior"] = "imagine"
+    """VRAMa: −V_λ imagined from the picks (Eq. 1), or −λ-returns along the picks' own posteriors (the authors')"""
     wm_on_addressed: bool = True
     """train the world model on addressed chunks too (off: they only start imagination)"""
+    addressed_wm_rule: Literal["rows", "batch"] = "rows"
+    """with --no-wm-on-addressed: mask the borrowed rows, or skip the model step of a mixed batch (the authors')"""
     address_plot_every: int = 10
     """draw the addressing-probabilities picture every this many episodes"""
 
@@ -233,6 +253,17 @@ def resolve_defaults(args: Args) -> Args:
                                obs_std=obs_std)
 
 
+def apply_preset(args: Args, given: set) -> Args:
+    """--preset's values for the flags not given on the command line, and one line saying what it set."""
+    if args.preset is None:
+        return args
+    values = {k: v for k, v in PRESETS[args.preset].items() if k not in given}
+    print(f"preset {args.preset}: " + " ".join(f"{flag(k)} {v}" for k, v in values.items()) +
+          (f" (given flags kept: {' '.join(flag(k) for k in sorted(given & set(PRESETS[args.preset])))})"
+           if given & set(PRESETS[args.preset]) else ""), flush=True)
+    return dataclasses.replace(args, **values)
+
+
 def flag(name: str) -> str:
     """An Args field as the command line spells it: address_lr -> --address-lr."""
     return "--" + name.replace("_", "-")
@@ -244,15 +275,18 @@ def check_args(args: Args) -> None:
                 "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
                 "prefill_episodes", "prior_max_episodes", "address_batch", "address_units", "address_cnn_depth",
                 "address_refresh", "address_candidates", "address_plot_every", "model_lr", "actor_lr", "value_lr",
-                "address_lr", "grad_clip", "address_grad_clip", "num_envs"]
+                "address_lr", "grad_clip", "address_grad_clip", "address_logit_scale", "num_envs"]
     for name in positive:
         if not getattr(args, name) > 0:  # `not >`: NaN is refused too
             raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
     for name in ["eval_episodes", "address_imagine_starts", "log_interval_seconds"]:
         if not getattr(args, name) >= 0:  # NaN is refused too
             raise UsageError(f"{flag(name)} must be >= 0 (got {getattr(args, name)})")
-    if args.obs_std is not None and args.obs_std <= 0:
-        raise UsageError(f"--obs-std must be > 0 (got {args.obs_std})")
+    for name in ["obs_std", "address_adam_eps"]:
+        if getattr(args, name) is not None and not getattr(args, name) > 0:
+            raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
+    if not 0.0 <= args.address_weight_decay < 1.0:
+        raise UsageError(f"--address-weight-decay must be in [0, 1) (got {args.address_weight_decay})")
     if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
         raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
     if not 0.0 <= args.address_prob <= 1.0 or not 0.0 <= args.current_fraction <= 1.0:
@@ -293,7 +327,23 @@ RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture
                 "plain_log", "log_interval_seconds", "precision", "channels_last", "prefetch")
 # flags added after runs were saved, with the value that was those runs' only behaviour: an args.json without one
 # resumes with this value; any other missing flag is refused
-ADDED_FLAGS = {"address_x_net": "shared"}
+ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": None, "address_weight_decay": 0.0,
+               "address_candidates_mode": "memory", "address_logit_scale": 1.0, "address_oversample_ends": False,
+               "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
+               "addressed_wm_rule": "rows"}
+# --preset: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's era) where it
+# departs from the paper's text; README, deviations 15-21, names the file and line of each
+PRESETS = {"authors-code": {
+    "own_episodes_in_m": False,  # train.py:122-130: own episodes go to M only with multitask.bootstrap (False)
+    "address_lr": 1e-4, "address_adam_eps": 1e-5, "address_weight_decay": 1e-6,  # configs_addressing.yaml:141
+    "address_candidates_mode": "fresh", "address_batch": 102,  # yaml:134,147-149: 2 x 51 chunks, no full memory
+    "address_oversample_ends": True,  # yaml:134 oversample_ends, read by replay.py:82-85,193-194 as `balance`
+    "reward_mask_borrowed": "all",  # proposal.py:92-98: mask_fun = tf.zeros on every borrowed row
+    "vrama_objective": "posterior",  # proposal.py:504-519: kind `value`
+    "address_stop_grad_x": True,  # yaml:145 detach_task_embedding, for every kind (proposal.py:474-475)
+    "addressed_wm_rule": "batch",  # proposal.py:307,312 and agent.py:72-80: agent_only skips the model step
+    "address_cnn_depth": 32,  # proposal.py:256-257: f_φ's own encoder has the world model's depth (32 in v1)
+}}
 
 
 class UsageError(Exception):
@@ -503,13 +553,17 @@ class Replay:
     def num_chunks(self, seq_len: int) -> int:
         return int(self._starts_per_episode(seq_len).sum())
 
-    def sample_ids(self, n: int, seq_len: int, rng: np.random.Generator):
-        """n (episode, start) pairs, uniform over all chunks of length seq_len."""
+    def sample_ids(self, n: int, seq_len: int, rng: np.random.Generator, oversample_ends: bool = False):
+        """n (episode, start) pairs, uniform over all chunks of length seq_len; oversample_ends: a start uniform
+        over the episode's T+1 steps, clipped to the last chunk's (the authors' replay): that chunk gets ~L/T."""
         starts_per_episode = self._starts_per_episode(seq_len)
         total = starts_per_episode.sum()
         if total == 0:
             raise ValueError(f"no episode has {seq_len} steps")
         episode_ids = rng.choice(len(self.episodes), size=n, p=starts_per_episode / total)  # (n,)
+        if oversample_ends:
+            return episode_ids, np.minimum(rng.integers(0, self._lengths[episode_ids]),
+                                           starts_per_episode[episode_ids] - 1)
         starts = rng.integers(0, starts_per_episode[episode_ids])  # (n,)
         return episode_ids, starts
 
@@ -517,8 +571,8 @@ class Replay:
         keys = ("obs", "action", "reward", "terminal")
         return {k: np.stack([self.episodes[e][k][s:s + seq_len] for e, s in zip(episode_ids, starts)]) for k in keys}
 
-    def sample(self, n: int, seq_len: int, rng: np.random.Generator) -> dict:
-        return self.gather(*self.sample_ids(n, seq_len, rng), seq_len)
+    def sample(self, n: int, seq_len: int, rng: np.random.Generator, oversample_ends: bool = False) -> dict:
+        return self.gather(*self.sample_ids(n, seq_len, rng, oversample_ends), seq_len)
 
     def chunk_rewards(self, episode_ids, starts, seq_len: int) -> np.ndarray:
         """(n,) stored reward sums of the chunks: what RRAMa's bandit reward estimates on the current task."""
@@ -926,9 +980,12 @@ def imagine(wm: WorldModel, actor: Actor, start: dict, horizon: int):
     return torch.stack(feats, 0)
 
 
-def imagined_returns(wm: WorldModel, value_net: nn.Module, feats, gamma: float, lam: float):
-    """Rewards and values along imagined features (H, N, F) -> λ-returns (H-1, N), their weights, values (H, N)."""
+def imagined_returns(wm: WorldModel, value_net: nn.Module, feats, gamma: float, lam: float,
+                     detach_reward: bool = False):
+    """Rewards and values along features (H, N, F) -> λ-returns (H-1, N), their weights, values (H, N);
+    detach_reward: the gradient reaches the features through the values only."""
     reward = wm.reward(feats).squeeze(-1)  # (H, N)
+    reward = reward.detach() if detach_reward else reward
     value = value_net(feats).squeeze(-1)  # (H, N)
     pcont = torch.full_like(reward, gamma)
     returns = lambda_return(reward[:-1], value[:-1], pcont[:-1], value[-1], lam)  # (H-1, N)
@@ -981,18 +1038,20 @@ class Agent(nn.Module):
         return {"model": self.model_opt, "actor": self.actor_opt, "value": self.value_opt}
 
 
-def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_mask=None) -> dict:
+def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_mask=None, step_model=True) -> dict:
     """One Dreamer update: the world-model loss on the batch, actor and value losses in imagination from its
     posteriors. As in Dreamer v1, all three are computed with the parameters before this update and then stepped
-    (imagination rolls the model as it was); --imagine-after-model-step steps the model before imagining."""
+    (imagination rolls the model as it was); --imagine-after-model-step steps the model before imagining.
+    step_model False leaves the model as it is (the actor and value still learn from the batch's posteriors)."""
     timings = {}
     t0 = time.perf_counter()
     wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask,
                                               args.obs_std)
 
     def model_step():  # backward into the model's parameters only, then its Adam step
-        metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(),
-                                                           args.grad_clip)
+        if step_model:
+            metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(),
+                                                               args.grad_clip)
 
     if args.imagine_after_model_step:
         model_step()
@@ -1060,12 +1119,14 @@ def reinforce_loss(logits, index, advantage, standardize: bool):
 
 
 def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float, lam: float, starts: int = 0,
-               select: str = "embeddings", reduction: str = "mean"):
+               select: str = "embeddings", reduction: str = "mean", objective: str = "imagine"):
     """Eq. 1: imagine from the posteriors of the selected chunks M_j; the loss is −V_λ along the imagined steps.
 
     The agent is frozen: the gradient reaches φ through the one-hots. reduction "mean" (Dreamer's actor loss: the
     γ^t-weighted mean) or "sum" (Eq. 1's Σ_t); select "embeddings" or "frames" (the same forward pass, another
-    straight-through gradient); starts > 0 imagines from that many random posteriors (an unbiased estimate)."""
+    straight-through gradient); starts > 0 imagines from that many random posteriors (an unbiased estimate).
+    objective "posterior" (the authors' code) imagines nothing: λ-returns along the picks' own L posterior states,
+    their rewards detached, so the gradient reaches φ through the values."""
     action = select_chunks(one_hot, m_batch["action"])  # (n, L, A)
     with Freeze(agent):
         if select == "frames":
@@ -1075,12 +1136,16 @@ def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float,
                 embed_m = agent.wm.encoder(m_batch["obs"])  # (m, L, E)
             embed = select_chunks(one_hot, embed_m.float())  # (n, L, E)
         post, _ = agent.wm.rssm.observe(embed, action)
-        start = {k: v.flatten(0, 1) for k, v in post.items()}  # (n*L, ...), not detached: φ learns through it
-        if 0 < starts < len(start["deter"]):
-            keep = torch.randperm(len(start["deter"]), device=one_hot.device)[:starts]  # (starts,)
-            start = {k: v[keep] for k, v in start.items()}
-        feats = imagine(agent.wm, agent.actor, start, horizon)
-        returns, weights, _ = imagined_returns(agent.wm, agent.value, feats, gamma, lam)  # (H-1, N) each
+        if objective == "posterior":
+            feats = agent.wm.rssm.feat(post).transpose(0, 1)  # (L, n, F): the chunks' own steps as the horizon
+        else:
+            start = {k: v.flatten(0, 1) for k, v in post.items()}  # (n*L, ...), not detached: φ learns through it
+            if 0 < starts < len(start["deter"]):
+                keep = torch.randperm(len(start["deter"]), device=one_hot.device)[:starts]  # (starts,)
+                start = {k: v[keep] for k, v in start.items()}
+            feats = imagine(agent.wm, agent.actor, start, horizon)  # (H, N, F)
+        returns, weights, _ = imagined_returns(agent.wm, agent.value, feats, gamma, lam,
+                                               detach_reward=objective == "posterior")  # (H-1, N) each
         if reduction == "sum":
             return -returns.sum(0).mean()
         return -(weights * returns).mean()
@@ -1093,11 +1158,14 @@ class Addressing:
         self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth,
                               args.address_layer_norm, args.address_reward_input)
         self.net = set_speed_options(self.net, args.precision, args.channels_last).to(device)
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr, eps=args.adam_eps)
+        # decoupled weight decay: torch scales it by lr, so wd / lr gives the authors' θ ← (1 − wd)·θ per step
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr,
+                                    eps=args.address_adam_eps or args.adam_eps, decoupled_weight_decay=True,
+                                    weight_decay=args.address_weight_decay / args.address_lr)
         # f(x)'s network: f_φ itself, or a frozen copy of its initial weights. Under the stop-gradient a step of φ
         # is meant to move f(M_j) only (Section 4.3), yet the shared weights move f(x) with it (README, deviations)
         self.x_net = self.net if args.address_x_net == "shared" else copy.deepcopy(self.net).requires_grad_(False)
-        self.method, self.device = args.method, device
+        self.method, self.device, self.logit_scale = args.method, device, args.address_logit_scale
         self.stop_grad_x = args.address_stop_grad_x
         if self.stop_grad_x is None:
             self.stop_grad_x = args.method in ("rrama", "rbrama")
@@ -1120,7 +1188,8 @@ class Addressing:
         if self.method == "vrama":
             one_hot, index = straight_through_sample(logits)
             loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda,
-                              args.address_imagine_starts, args.vrama_select, args.vrama_reduction)
+                              args.address_imagine_starts, args.vrama_select, args.vrama_reduction,
+                              args.vrama_objective)
         else:
             index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
             bandit_reward = predicted_reward_sum(agent.wm, m_batch)  # (m,)
@@ -1150,13 +1219,14 @@ class Addressing:
         self.D = torch.cat(parts, 0)  # (N_c, U)
 
     @torch.no_grad()
-    def probs(self, x: dict):
-        """q̂(j | x_i) ∝ exp(f(x_i)ᵀ D_j) over the candidates: (n, N_c)."""
-        return (self.embed_x(x) @ self.D.T).softmax(-1)
+    def probs(self, x: dict, candidates: Optional[dict] = None):
+        """q̂(j | x_i) ∝ exp(s · f(x_i)ᵀ D_j) over D, or over a batch of fresh candidate chunks: (n, N_c)."""
+        D = self.D if candidates is None else self.embed(candidates)  # (N_c, U)
+        return (self.embed_x(x) @ D.T * self.logit_scale).softmax(-1)
 
-    def pick(self, x: dict):
+    def pick(self, x: dict, candidates: Optional[dict] = None):
         """Candidate indices drawn from q̂ for each row of x: (n,) numpy."""
-        return torch.multinomial(self.probs(x), 1).squeeze(-1).cpu().numpy()
+        return torch.multinomial(self.probs(x, candidates), 1).squeeze(-1).cpu().numpy()
 
 
 def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
@@ -1164,37 +1234,46 @@ def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addres
     """One update of Algorithm 2 given n current-task chunks x_i ~ M_τ (torch, on device): (a) the addressing step,
     (b) the agent's step on a batch that, with probability p, is β·n current chunks plus (1-β)·n chunks of M
     picked by q̂ (or uniformly for `uniform`)."""
-    n, seq_len = args.batch_size, args.seq_len
+    n, seq_len, ends = args.batch_size, args.seq_len, args.address_oversample_ends
     timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
     use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
+    memory_mode = args.address_candidates_mode == "memory"
 
     if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
         t0 = time.perf_counter()
-        if addressing.D is None or updates_done % args.address_refresh == 0:
+        if memory_mode and (addressing.D is None or updates_done % args.address_refresh == 0):
             addressing.refresh(multitask, seq_len, args.address_candidates, rng)
             metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
-        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng), device)  # M_j ~ M
+        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng, ends), device)  # M_j ~ M
         metrics.update(addressing.train(agent, x, m_batch, args))
         timings["addressing"] = time.perf_counter() - t0
 
-    batch, reward_mask, model_mask = x, None, None
+    batch, reward_mask, model_mask, step_model = x, None, None, True
     keep = int(round(args.current_fraction * n))
     if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
         t0 = time.perf_counter()
         borrow = n - keep
         if addressing is None:
-            picks = multitask.sample_ids(borrow, seq_len, rng)
-        else:
-            j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i)
+            picks = multitask.sample_ids(borrow, seq_len, rng, ends)
+        elif memory_mode:
+            j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i) over D
             picks = (addressing.candidates[0][j], addressing.candidates[1][j])
+        else:  # the authors' code: q̂ over m fresh chunks of M, embedded now
+            fresh = multitask.sample_ids(args.address_batch, seq_len, rng, ends)
+            addressing.candidates, addressing.candidate_rewards = fresh, multitask.chunk_rewards(*fresh, seq_len)
+            j = addressing.pick({k: v[:borrow] for k, v in x.items()}, to_torch(multitask.gather(*fresh, seq_len),
+                                                                                 device))
+            picks = (fresh[0][j], fresh[1][j])
         m_batch = to_torch(multitask.gather(*picks, seq_len), device)
         batch = {k: torch.cat([x[k][:keep], m_batch[k]], 0) for k in x}  # keep current rows, then borrowed ones
-        tasks = [task_name] * keep + [multitask.tasks[e] for e in picks[0]]
-        reward_mask = torch.tensor([float(t == task_name) for t in tasks], device=device)  # other tasks' rewards
-        if not args.wm_on_addressed:
+        same_task = [float(args.reward_mask_borrowed == "other-tasks" and multitask.tasks[e] == task_name)
+                     for e in picks[0]]  # a borrowed chunk keeps its reward loss only if it is of this task
+        reward_mask = torch.tensor([1.0] * keep + same_task, device=device)
+        if not args.wm_on_addressed and args.addressed_wm_rule == "rows":
             model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
+        step_model = args.wm_on_addressed or args.addressed_wm_rule == "rows"
         timings["batch_sampling"] += time.perf_counter() - t0
-    out = train_step(agent, batch, args, reward_mask, model_mask)
+    out = train_step(agent, batch, args, reward_mask, model_mask, step_model)
     out["metrics"].update(metrics)
     out["timings"].update(timings)
     out["picks"] = picks
@@ -1533,16 +1612,19 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     os.makedirs(episode_dir, exist_ok=True)
     # the current task's replay M_τ: episodes already on disk count (a resumed run recovers its step count here)
     replay = Replay()
+    # M grows with every task's episodes (shared arrays, no copy): at once, or (--no-own-episodes-in-m, the authors'
+    # code) only once this task is over, for the later tasks of a --task-sequence
+    grows_m = args.method != "dreamer" and args.own_episodes_in_m
     for path in list_episode_files(episode_dir):
         episode = load_episode(path)
         replay.add(episode)
-        if args.method != "dreamer":
-            multitask.add(episode)  # M grows with every task's episodes (shared arrays, no copy)
+        if grows_m:
+            multitask.add(episode)
     env_steps = sum(len(ep["reward"]) - 1 for ep in replay.episodes) * args.action_repeat
     last_eval_due = args.eval_episodes and checkpoint is not None and checkpoint["state"]["next_eval"] <= env_steps
     if env_steps >= args.total_steps and not last_eval_due:  # (a run killed before its last evaluation does it)
         print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
-        return
+        return add_after_task(args, replay, multitask)
 
     envs, eval_env = make_envs(args, env_id, seed, args.num_envs), make_envs(args, env_id, seed + 10_000, 1)
     task, action_size = make_env_spec(env_id)["name"], envs.single_action_space.shape[0]
@@ -1602,7 +1684,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
                 if state.get("round_at") != len(replay):
                     state["round_at"], state["round_left"] = len(replay), args.updates_per_episode * args.num_envs
-                rows, sums, timings, picks, done = [], {}, {}, [], 0
+                rows, sums, counts, timings, picks, done = [], {}, {}, {}, [], 0
                 round_start, todo = time.time(), state["round_left"]
                 round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,
                                  disable=progress.disable)
@@ -1625,8 +1707,8 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 round_bar.close()
                 for row in rows:
                     for k, v in row.items():
-                        sums[k] = sums.get(k, 0.0) + v
-                metrics = {k: v.item() / max(done, 1) for k, v in sums.items()}
+                        sums[k], counts[k] = sums.get(k, 0.0) + v, counts.get(k, 0) + 1
+                metrics = {k: v.item() / counts[k] for k, v in sums.items()}  # over the updates that logged k
                 # one check per round (the sums carry any NaN or inf): the round is then neither saved nor logged
                 finite = all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in agent.parameters())
                 if not finite:
@@ -1680,7 +1762,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
             for episode in episodes:
                 save_episode(episode_dir, len(replay), episode)
                 replay.add(episode)
-                if args.method != "dreamer":
+                if grows_m:
                     multitask.add(episode)
                 steps = (len(episode["reward"]) - 1) * args.action_repeat
                 env_steps += steps
@@ -1697,12 +1779,20 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     finally:
         for resource in (progress, sampler, logger, envs, eval_env):
             resource.close()
+    add_after_task(args, replay, multitask)
+
+
+def add_after_task(args: Args, replay: Replay, multitask: Replay):
+    """--no-own-episodes-in-m: a finished task's episodes join M for the tasks after it (Algorithm 1)."""
+    if args.method != "dreamer" and not args.own_episodes_in_m:
+        for episode in replay.episodes:
+            multitask.add(episode)
 
 
 def main(args: Args, given: frozenset = frozenset()):
     """Everything that can be checked (flags, env ids, prior episodes, the resumed folder and its checkpoints) is
     checked before the run folder is created or touched."""
-    args = resolve_defaults(args)
+    args = resolve_defaults(apply_preset(args, set(given)))
     check_args(args)
     args, run_path = resolve_run(args, set(given))
     device = resolve_device(args.device)

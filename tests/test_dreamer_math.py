@@ -220,7 +220,9 @@ def test_resume_of_a_run_saved_by_an_older_version_is_refused(tmp_path):
     del saved["address_x_net"]  # a flag whose absence means its value: before it, f(x) was always f_φ's own
     (tmp_path / "args.json").write_text(json.dumps(saved))
     args, _ = rd.resolve_run(rd.Args(resume=str(tmp_path)), {"resume"})
-    assert args.address_x_net == "shared" and rd.ADDED_FLAGS == {"address_x_net": "shared"}
+    assert args.address_x_net == "shared" and rd.ADDED_FLAGS["address_x_net"] == "shared"
+    # every flag added since (the authors' configuration's) resumes as the one behaviour there was: its default
+    assert all(getattr(rd.Args(), name) == value for name, value in rd.ADDED_FLAGS.items())
     del saved["obs_std"]  # an args.json written before the flag existed
     (tmp_path / "args.json").write_text(json.dumps(saved))
     with pytest.raises(rd.UsageError, match=r"args.json: saved by an older version .*--obs-std"):

@@ -194,7 +194,7 @@ def test_vrama_reduction_mean_and_sum(monkeypatch):
     """"mean" is Dreamer's γ^t-weighted mean over steps and starts; "sum" is Eq. 1's −Σ_t V_λ, mean over starts."""
     returns = torch.tensor([[1.0, 2.0], [3.0, 4.0]])  # (H-1=2 steps, N=2 starts)
     weights = torch.tensor([[1.0, 1.0], [0.5, 0.5]])
-    monkeypatch.setattr(rd, "imagined_returns", lambda *a: (returns, weights, None))
+    monkeypatch.setattr(rd, "imagined_returns", lambda *a, **k: (returns, weights, None))
     monkeypatch.setattr(rd, "imagine", lambda *a: None)
     args = rd.Args(obs_type="state", **SMALL)
     agent = rd.Agent((3,), 2, args)
@@ -245,9 +245,9 @@ def test_batch_merge_keeps_beta_n_current_chunks():
     seen = {}
     real = rd.train_step
 
-    def spy(agent, batch, args, reward_mask=None, model_mask=None):
+    def spy(agent, batch, args, reward_mask=None, model_mask=None, step_model=True):
         seen.update(batch=batch, reward_mask=reward_mask, model_mask=model_mask)
-        return real(agent, batch, args, reward_mask, model_mask)
+        return real(agent, batch, args, reward_mask, model_mask, step_model)
 
     rd.train_step = spy
     try:
