@@ -764,12 +764,22 @@ def preprocess_obs(obs, device):
     return obs.float()
 
 
-def to_torch(batch: dict, device) -> dict:
-    """numpy (or pinned torch) chunks (B, T, ...) -> float torch tensors on device (terminal stays bool)."""
-    out = {k: torch.as_tensor(v).to(device, non_blocking=True) for k, v in batch.items() if k != "obs"}
-    out["obs"] = preprocess_obs(batch["obs"], device)
+def to_device(batch: dict, device) -> dict:
+    """numpy (or pinned torch) chunks (B, T, ...) -> torch tensors on device as stored (images uint8)."""
+    return {k: torch.as_tensor(v).to(device, non_blocking=True) for k, v in batch.items()}
+
+
+def preprocess(batch: dict) -> dict:
+    """Chunks on the device as stored -> what the networks read: float obs (images (B, T, 3, H, W) in [-0.5, 0.5]),
+    float actions and rewards; terminal stays bool."""
+    out = dict(batch, obs=preprocess_obs(batch["obs"], batch["obs"].device))
     out["action"], out["reward"] = out["action"].float(), out["reward"].float()
     return out
+
+
+def to_torch(batch: dict, device) -> dict:
+    """numpy (or pinned torch) chunks (B, T, ...) -> float torch tensors on device (terminal stays bool)."""
+    return preprocess(to_device(batch, device))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1186,12 +1196,19 @@ def address_logits(emb_x, emb_m, stop_grad_x: bool):
     return (emb_x.detach() if stop_grad_x else emb_x) @ emb_m.T
 
 
-def straight_through_sample(logits):
-    """One-hot samples j ~ softmax(logits) (n, m) whose gradient is that of the probabilities (no Gumbel noise)."""
+def gumbel_max(logits, generator: Optional[torch.Generator] = None):
+    """j ~ softmax(logits) per row, as argmax(logits + Gumbel noise): (n, m) -> (n,), drawn on the device with no
+    host sync (torch.multinomial also breaks CUDA-graph capture, pytorch#134442)."""
+    uniform = torch.rand(logits.shape, generator=generator, device=logits.device)  # (n, m) in [0, 1)
+    return (logits.detach().float() - torch.log(-torch.log(uniform))).argmax(-1)
+
+
+def straight_through_sample(logits, generator: Optional[torch.Generator] = None):
+    """One-hot samples j ~ softmax(logits) (n, m) whose gradient is that of the probabilities."""
     probs = logits.softmax(-1)
-    index = torch.multinomial(probs.detach(), 1).squeeze(-1)  # (n,)
+    index = gumbel_max(logits, generator)  # (n,)
     one_hot = F.one_hot(index, probs.shape[-1]).to(probs.dtype)
-    return one_hot + probs - probs.detach(), index  # forward: exactly one-hot; backward: d/d probs
+    return one_hot + (probs - probs.detach()), index  # forward: exactly one-hot (+ 0); backward: d/d probs
 
 
 def select_chunks(one_hot, chunks):
@@ -1266,9 +1283,11 @@ class Addressing:
         self.stop_grad_x = args.address_stop_grad_x
         if self.stop_grad_x is None:
             self.stop_grad_x = args.method in ("rrama", "rbrama")
-        self.candidates = None  # (episode ids, starts) of the chunks embedded in D
+        self.generator = torch.Generator(device).manual_seed(args.seed)  # the picks' Gumbel noise
+        self.candidates = None  # (episode ids, starts) of the chunks embedded in D (or of the last fresh pool)
         self.candidate_rewards = None  # (N_c,) their stored reward sums, for the logs and the picture
         self.D = None  # (N_c, U)
+        self.pool = None  # the candidates' chunks as stored, on the device: what the picks of q̂ over D gather
 
     def embed(self, batch: dict):
         """f_φ(M_j): (B, U)."""
@@ -1283,12 +1302,12 @@ class Addressing:
         logits = address_logits(self.embed_x(x), self.embed(m_batch), self.stop_grad_x)  # (n, m)
         metrics = {}
         if self.method == "vrama":
-            one_hot, index = straight_through_sample(logits)
+            one_hot, index = straight_through_sample(logits, self.generator)
             loss = vrama_loss(agent, one_hot, m_batch, args.horizon, args.gamma, args.return_lambda,
                               args.address_imagine_starts, args.vrama_select, args.vrama_reduction,
                               args.vrama_objective)
         else:
-            index = torch.multinomial(logits.softmax(-1).detach(), 1).squeeze(-1)  # (n,)
+            index = gumbel_max(logits, self.generator)  # (n,)
             bandit_reward = predicted_reward_sum(agent.wm, m_batch)  # (m,)
             # what the objective gains: the expected bandit reward of a pick under q against a uniform pick
             metrics["addressing/bandit_reward_q"] = (logits.detach().softmax(-1) @ bandit_reward).mean()
@@ -1306,74 +1325,111 @@ class Addressing:
 
     @torch.no_grad()
     def refresh(self, multitask: Replay, seq_len: int, cap: int, rng, chunk_batch: int = 64):
-        """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks (once per C updates)."""
+        """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks (once per C updates), and keep their chunks on
+        the device (as stored: images uint8), for the updates to gather their picks from without the host."""
         self.candidates = multitask.grid_ids(seq_len, cap, rng)
         self.candidate_rewards = multitask.chunk_rewards(*self.candidates, seq_len)
-        parts = []
+        parts, embeddings = [], []
         for i in range(0, len(self.candidates[0]), chunk_batch):
             ids = (self.candidates[0][i:i + chunk_batch], self.candidates[1][i:i + chunk_batch])
-            parts.append(self.embed(to_torch(multitask.gather(*ids, seq_len), self.device)))
-        self.D = torch.cat(parts, 0)  # (N_c, U)
+            parts.append(to_device(multitask.gather(*ids, seq_len), self.device))
+            embeddings.append(self.embed(preprocess(parts[-1])))
+        self.pool = {k: torch.cat([part[k] for part in parts], 0) for k in parts[0]}  # (N_c, L, ...)
+        self.D = torch.cat(embeddings, 0)  # (N_c, U)
 
     @torch.no_grad()
-    def probs(self, x: dict, candidates: Optional[dict] = None):
-        """q̂(j | x_i) ∝ exp(s · f(x_i)ᵀ D_j) over D, or over a batch of fresh candidate chunks: (n, N_c)."""
-        D = self.D if candidates is None else self.embed(candidates)  # (N_c, U)
-        return (self.embed_x(x) @ D.T * self.logit_scale).softmax(-1)
+    def logits(self, x: dict, D=None):
+        """s · f(x_i)ᵀ D_j, the logits of q̂ (s: --address-logit-scale), over D or other embeddings: (n, N_c)."""
+        return self.embed_x(x) @ (self.D if D is None else D).T * self.logit_scale
 
-    def pick(self, x: dict, candidates: Optional[dict] = None):
-        """Candidate indices drawn from q̂ for each row of x: (n,) numpy."""
-        return torch.multinomial(self.probs(x, candidates), 1).squeeze(-1).cpu().numpy()
+    def probs(self, x: dict):
+        """q̂(j | x_i) ∝ exp(s · f(x_i)ᵀ D_j) over the candidates: (n, N_c)."""
+        return self.logits(x).softmax(-1)
+
+    @torch.no_grad()
+    def pick(self, x: dict, pool: dict, pool_embed=None):
+        """j ~ q̂(j | x_i) over a pool of chunks (as stored) whose embeddings are pool_embed (None: embedded here),
+        drawn on the device by Gumbel-max: (n,)."""
+        pool_embed = self.embed(preprocess(pool)) if pool_embed is None else pool_embed
+        return gumbel_max(self.logits(x, pool_embed), self.generator)
 
 
-def update(agent: Agent, x: dict, multitask: Replay, addressing: Optional[Addressing], args: Args, rng,
-           device, task_name: str, updates_done: int) -> dict:
-    """One update of Algorithm 2 given n current-task chunks x_i ~ M_τ (torch, on device): (a) the addressing step,
-    (b) the agent's step on a batch that, with probability p, is β·n current chunks plus (1-β)·n chunks of M
-    picked by q̂ (or uniformly for `uniform`)."""
-    n, seq_len, ends = args.batch_size, args.seq_len, args.address_oversample_ends
-    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
-    use_prior = args.method != "dreamer" and multitask.num_chunks(seq_len) > 0
-    memory_mode = args.address_candidates_mode == "memory"
-
-    if addressing is not None and use_prior:  # (a) train f_φ with the agent fixed
-        t0 = time.perf_counter()
+def plan_update(args: Args, multitask: Replay, addressing: Optional[Addressing], rng, device, task_name: str,
+                updates_done: int) -> dict:
+    """What the host decides before one update (Algorithm 2), handed to `update` as tensors on the device: the m
+    chunks of M that train f_φ, whether the agent's batch mixes M in (probability p), and the pool its borrowed
+    chunks come from, with a reward-mask value per pool chunk. The update then runs without waiting for the host."""
+    seq_len, ends, borrow = args.seq_len, args.address_oversample_ends, args.batch_size - keep_rows(args)
+    if args.method == "dreamer" or multitask.num_chunks(seq_len) == 0:
+        return {}  # no M (yet): the plain Dreamer update
+    plan = {"mixed": borrow > 0 and bool(rng.random() < args.address_prob)}
+    memory_mode = addressing is not None and args.address_candidates_mode == "memory"
+    if addressing is not None:
         if memory_mode and (addressing.D is None or updates_done % args.address_refresh == 0):
+            t0 = time.perf_counter()
             addressing.refresh(multitask, seq_len, args.address_candidates, rng)
-            metrics["addressing/refresh_seconds"] = torch.tensor(time.perf_counter() - t0)
-        m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng, ends), device)  # M_j ~ M
-        metrics.update(addressing.train(agent, x, m_batch, args))
-        timings["addressing"] = time.perf_counter() - t0
+            plan["refresh_seconds"] = time.perf_counter() - t0
+        plan["m_batch"] = to_torch(multitask.sample(args.address_batch, seq_len, rng, ends), device)  # M_j ~ M
+    if borrow == 0:
+        return plan
+    if memory_mode:
+        plan["pool_ids"], plan["pool"], plan["pool_embed"] = addressing.candidates, addressing.pool, addressing.D
+    else:  # `uniform`: the borrowed chunks themselves; `fresh` (the authors' code): m new chunks for q̂ to pick from
+        plan["pool_ids"] = multitask.sample_ids(borrow if addressing is None else args.address_batch, seq_len, rng,
+                                                ends)
+        plan["pool"] = to_device(multitask.gather(*plan["pool_ids"], seq_len), device)
+        if addressing is not None:
+            addressing.candidates = plan["pool_ids"]
+            addressing.candidate_rewards = multitask.chunk_rewards(*plan["pool_ids"], seq_len)
+    # a borrowed chunk keeps its reward loss only if it is of this task (--reward-mask-borrowed all: none does)
+    same_task = [args.reward_mask_borrowed == "other-tasks" and multitask.tasks[e] == task_name
+                 for e in plan["pool_ids"][0]]
+    plan["pool_reward_mask"] = torch.tensor(same_task, dtype=torch.float32).to(device, non_blocking=True)  # (P,)
+    plan["mix"] = torch.tensor(float(plan["mixed"])).to(device, non_blocking=True)  # () 0 or 1
+    return plan
 
-    batch, reward_mask, model_mask, step_model = x, None, None, True
-    keep = int(round(args.current_fraction * n))
-    if use_prior and keep < n and rng.random() < args.address_prob:  # (b) mix M into the agent's batch
+
+def keep_rows(args: Args) -> int:
+    """β·n: the rows of a mixed batch that stay current-task chunks."""
+    return int(round(args.current_fraction * args.batch_size))
+
+
+def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: dict, args: Args) -> dict:
+    """One update of Algorithm 2, given n current-task chunks x_i ~ M_τ and the host's plan: (a) the addressing
+    step; (b) the agent's step on n rows: β·n chunks of x, then x's other rows or, when plan["mix"] = 1, chunks of
+    the pool picked by q̂ (by the host for `uniform`), with per-row reward and model masks. A mixed and an unmixed
+    update are the same computation with other mask values and rows: fixed shapes, and no host sync inside."""
+    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
+    if "m_batch" in plan:  # (a) train f_φ with the agent fixed
         t0 = time.perf_counter()
-        borrow = n - keep
-        if addressing is None:
-            picks = multitask.sample_ids(borrow, seq_len, rng, ends)
-        elif memory_mode:
-            j = addressing.pick({k: v[:borrow] for k, v in x.items()})  # j ~ q̂(j | x_i) over D
-            picks = (addressing.candidates[0][j], addressing.candidates[1][j])
-        else:  # the authors' code: q̂ over m fresh chunks of M, embedded now
-            fresh = multitask.sample_ids(args.address_batch, seq_len, rng, ends)
-            addressing.candidates, addressing.candidate_rewards = fresh, multitask.chunk_rewards(*fresh, seq_len)
-            j = addressing.pick({k: v[:borrow] for k, v in x.items()}, to_torch(multitask.gather(*fresh, seq_len),
-                                                                                 device))
-            picks = (fresh[0][j], fresh[1][j])
-        m_batch = to_torch(multitask.gather(*picks, seq_len), device)
-        batch = {k: torch.cat([x[k][:keep], m_batch[k]], 0) for k in x}  # keep current rows, then borrowed ones
-        same_task = [float(args.reward_mask_borrowed == "other-tasks" and multitask.tasks[e] == task_name)
-                     for e in picks[0]]  # a borrowed chunk keeps its reward loss only if it is of this task
-        reward_mask = torch.tensor([1.0] * keep + same_task, device=device)
+        metrics.update(addressing.train(agent, x, plan["m_batch"], args))
+        if "refresh_seconds" in plan:
+            metrics["addressing/refresh_seconds"] = torch.tensor(plan["refresh_seconds"])
+        timings["addressing"] = time.perf_counter() - t0 + plan.get("refresh_seconds", 0.0)
+
+    batch, reward_mask, model_mask = x, None, None
+    if "pool" in plan:  # (b) mix M into the agent's batch
+        t0 = time.perf_counter()
+        keep = keep_rows(args)
+        borrow = len(x["reward"]) - keep
+        if addressing is None:  # `uniform`: the host drew the pool's chunks uniformly from M
+            picks = torch.arange(borrow, device=x["reward"].device)
+        else:  # j ~ q̂(j | x_i) for the first rows of x
+            picks = addressing.pick({k: v[:borrow] for k, v in x.items()}, plan["pool"], plan.get("pool_embed"))
+        borrowed = preprocess({k: v[picks] for k, v in plan["pool"].items()})  # (borrow, L, ...)
+        mix = plan["mix"].bool()
+        batch = {k: torch.cat([x[k][:keep], torch.where(mix, borrowed[k], x[k][keep:])], 0) for k in x}
+        ones = torch.ones(borrow, device=mix.device)
+        reward_mask = torch.cat([ones.new_ones(keep), torch.where(mix, plan["pool_reward_mask"][picks], ones)])
         if not args.wm_on_addressed and args.addressed_wm_rule == "rows":
-            model_mask = torch.tensor([1.0] * keep + [0.0] * borrow, device=device)
-        step_model = args.wm_on_addressed or args.addressed_wm_rule == "rows"
+            model_mask = torch.cat([ones.new_ones(keep), ones - plan["mix"]])  # (n,)
         timings["batch_sampling"] += time.perf_counter() - t0
+    # the authors' `agent_only` (--addressed-wm-rule batch): a mixed batch leaves the model as it is
+    step_model = args.wm_on_addressed or args.addressed_wm_rule == "rows" or not plan.get("mixed")
     out = train_step(agent, batch, args, reward_mask, model_mask, step_model)
     out["metrics"].update(metrics)
     out["timings"].update(timings)
-    out["picks"] = picks
+    out["picks"] = (plan["pool_ids"], picks) if plan.get("mixed") else None  # picks: indices into the pool
     return out
 
 
@@ -1701,182 +1757,249 @@ def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: 
             f"round ETA {tqdm.format_interval((todo - done) / rate)}")
 
 
+@dataclass
+class Task:
+    """One task of Algorithm 1 as the steps of Algorithm 2 share it: its agent, replay M_τ and envs, the run's M and
+    f_φ, and the logging. `state` (updates done, the next evaluation's step, the current round) is checkpointed."""
+    args: Args
+    env_id: str
+    name: str
+    seed: int
+    path: str
+    device: torch.device
+    replay: Replay
+    multitask: Replay
+    addressing: Optional[Addressing]
+    rng: np.random.Generator
+    address_path: str
+    env_steps: int
+    envs: gymnasium.vector.VectorEnv = None
+    eval_env: gymnasium.vector.VectorEnv = None
+    agent: Agent = None
+    policy: Policy = None
+    sampler: ChunkSampler = None
+    logger: Logger = None
+    progress: object = None  # the tqdm bar over env steps (disabled: plain lines)
+    state: dict = None
+    start: tuple = None  # (time, env steps) when this process started the task: the run's speed counts from there
+    last_line: float = 0.0  # when the last plain line was printed
+
+
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
                addressing: Optional[Addressing], rng, address_path: str, checkpoint: Optional[dict]):
     """Algorithm 2 on one task: a fresh agent, the shared M and f_φ; resumes from task_path when it has data (and
-    from `checkpoint`, read by main)."""
-    episode_dir = os.path.join(task_path, "episodes")
-    os.makedirs(episode_dir, exist_ok=True)
-    # the current task's replay M_τ: episodes already on disk count (a resumed run recovers its step count here)
-    replay = Replay()
-    # M grows with every task's episodes (shared arrays, no copy): at once, or (--no-own-episodes-in-m, the authors'
-    # code) only once this task is over, for the later tasks of a --task-sequence
-    grows_m = args.method != "dreamer" and args.own_episodes_in_m
-    for path in list_episode_files(episode_dir):
-        episode = load_episode(path)
-        replay.add(episode)
-        if grows_m:
-            multitask.add(episode)
+    from `checkpoint`, read by main). Each collected episode: (a) a round of C updates, (b) evaluation when due,
+    (c) collection."""
+    replay = load_task_replay(args, os.path.join(task_path, "episodes"), multitask)
     env_steps = sum(len(ep["reward"]) - 1 for ep in replay.episodes) * args.action_repeat
     last_eval_due = args.eval_episodes and checkpoint is not None and checkpoint["state"]["next_eval"] <= env_steps
     if env_steps >= args.total_steps and not last_eval_due:  # (a run killed before its last evaluation does it)
         print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
         return add_after_task(args, replay, multitask)
+    task = Task(args, env_id, make_env_spec(env_id)["name"], seed, task_path, device, replay, multitask, addressing,
+                rng, address_path, env_steps)
+    try:
+        open_task(task, checkpoint)
+        while task.env_steps < args.total_steps:
+            if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
+                end_round(task, *train_round(task))  # (a) C updates on chunks of M_τ, mixed with M
+            evaluate_if_due(task)  # (b) without exploration noise, every --eval-every env steps
+            collect(task)  # (c) an episode per env, each stored atomically
+        evaluate_if_due(task)  # the last step's evaluation
+    finally:
+        for resource in (task.progress, task.sampler, task.logger, task.envs, task.eval_env):
+            if resource is not None:
+                resource.close()
+    add_after_task(args, replay, multitask)
 
-    envs, eval_env = make_envs(args, env_id, seed, args.num_envs), make_envs(args, env_id, seed + 10_000, 1)
-    task, action_size = make_env_spec(env_id)["name"], envs.single_action_space.shape[0]
-    agent = Agent(envs.single_observation_space.shape, action_size, args).to(device)
-    policy = Policy(agent, device)
+
+def load_task_replay(args: Args, episode_dir: str, multitask: Replay) -> Replay:
+    """The current task's replay M_τ: the episodes already on disk count (a resumed run recovers its step count
+    here). M grows with every task's episodes (shared arrays, no copy): at once, or (--no-own-episodes-in-m, the
+    authors' code) only once the task is over, for the later tasks of a --task-sequence."""
+    os.makedirs(episode_dir, exist_ok=True)
+    replay = Replay()
+    for path in list_episode_files(episode_dir):
+        episode = load_episode(path)
+        replay.add(episode)
+        if args.method != "dreamer" and args.own_episodes_in_m:
+            multitask.add(episode)
+    return replay
+
+
+def open_task(task: Task, checkpoint: Optional[dict]):
+    """The envs, a fresh agent (or the checkpoint's), the batch sampler, the logger and the progress bar."""
+    args, replay = task.args, task.replay
+    task.envs, task.eval_env = make_envs(args, task.env_id, task.seed, args.num_envs), make_envs(
+        args, task.env_id, task.seed + 10_000, 1)
+    task.agent = Agent(task.envs.single_observation_space.shape, task.envs.single_action_space.shape[0],
+                       args).to(task.device)
+    task.policy = Policy(task.agent, task.device)
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
     # updates it still has to do (a run stopped mid-round finishes it; one killed after a round does not redo it)
-    state = {"updates": 0, "next_eval": args.eval_every}
-    checkpoint_path = os.path.join(task_path, "checkpoint.pt")
+    task.state = {"updates": 0, "next_eval": args.eval_every}
     if checkpoint is not None:
-        state = load_checkpoint(checkpoint_path, checkpoint, agent)
-        rng = np.random.default_rng([args.seed, len(replay)])  # fresh stream: resume is not bit-identical
-    sampler = ChunkSampler(replay, args.batch_size, args.seq_len, np.random.default_rng([seed, len(replay), 1]),
-                           device, args.prefetch)
-    logger = Logger(task_path, args)
-    for folder in (["videos"] if args.capture_video else []) + (["addressing"] if addressing else []):
-        os.makedirs(os.path.join(task_path, folder), exist_ok=True)
-    print(f"run: {task_path} | {env_id} ({args.obs_type}) | method {args.method} | device {device} | "
-          f"{sum(p.numel() for p in agent.parameters()) / 1e6:.2f}M parameters | {len(replay)} episodes on disk "
-          f"({env_steps} steps) | multitask buffer {len(multitask)} episodes", flush=True)
-
+        task.state = load_checkpoint(os.path.join(task.path, "checkpoint.pt"), checkpoint, task.agent)
+        task.rng = np.random.default_rng([args.seed, len(replay)])  # fresh stream: resume is not bit-identical
+    task.sampler = ChunkSampler(replay, args.batch_size, args.seq_len,
+                                np.random.default_rng([task.seed, len(replay), 1]), task.device, args.prefetch)
+    task.logger = Logger(task.path, args)
+    for folder in (["videos"] if args.capture_video else []) + (["addressing"] if task.addressing else []):
+        os.makedirs(os.path.join(task.path, folder), exist_ok=True)
+    print(f"run: {task.path} | {task.env_id} ({args.obs_type}) | method {args.method} | device {task.device} | "
+          f"{sum(p.numel() for p in task.agent.parameters()) / 1e6:.2f}M parameters | {len(replay)} episodes on disk "
+          f"({task.env_steps} steps) | multitask buffer {len(task.multitask)} episodes", flush=True)
     from tqdm import tqdm
 
     # a bar over env steps and, inside each round of C updates, one over its updates (updates/s, the round's ETA);
     # without a terminal on stderr (nohup, CI, sweeps) or with --plain-log: plain lines, at least one per
     # --log-interval-seconds inside a round and one per collected episode(s)
-    progress = tqdm(total=args.total_steps, initial=min(env_steps, args.total_steps), unit="step", dynamic_ncols=True,
-                    disable=True if args.plain_log else None)
+    task.progress = tqdm(total=args.total_steps, initial=min(task.env_steps, args.total_steps), unit="step",
+                         dynamic_ncols=True, disable=True if args.plain_log else None)
+    task.start, task.last_line = (time.time(), task.env_steps), time.time()
 
-    def evaluate_if_due():
-        """Every --eval-every env steps once prefilled: --eval-episodes episodes with the actor's mode, logged as
-        eval/ at the current step, then a checkpoint (a resumed run does not repeat this evaluation)."""
-        if not (args.eval_episodes and env_steps >= state["next_eval"] and len(replay) >= args.prefill_episodes):
-            return
-        episodes = []
-        for i in range(args.eval_episodes):
-            policy.reset()
-            (episode,), frames = run_episodes(eval_env, lambda o: policy.act(o, None, rng),
-                                              [seed * 1_000_003 + 7919 * env_steps + i], task,
-                                              record=args.capture_video and i == 0)
-            episodes.append(episode)
-            if frames:
-                write_gif(os.path.join(task_path, "videos", f"eval_{env_steps:08d}.gif"), frames)
-        eval_metrics = episode_metrics("eval", episodes)
-        while state["next_eval"] <= env_steps:
-            state["next_eval"] += args.eval_every
-        save_checkpoint(checkpoint_path, agent, state, args)
-        logger.log(env_steps, eval_metrics)
-        progress.write(f"step {env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
-        sys.stdout.flush()
 
-    start_time, start_steps = time.time(), env_steps
-    last_line = time.time()  # when the last plain line was printed
-    try:
-        while env_steps < args.total_steps:
-            # (a) C updates on chunks of the replay (mixed with M), once there is something to learn from
-            if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
-                if state.get("round_at") != len(replay):
-                    state["round_at"], state["round_left"] = len(replay), args.updates_per_episode * args.num_envs
-                rows, sums, counts, timings, picks, done = [], {}, {}, {}, [], 0
-                round_start, todo = time.time(), state["round_left"]
-                round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,
-                                 disable=progress.disable)
-                for x, waited in sampler.batches(todo):
-                    if STOP["signal"]:  # finish the current update, not the round
-                        break
-                    out = update(agent, x, multitask, addressing, args, rng, device, task, state["updates"])
-                    out["timings"]["batch_sampling"] += waited
-                    state["updates"], done = state["updates"] + 1, done + 1
-                    rows.append({k: v.detach() for k, v in out["metrics"].items()})
-                    for k, v in out["timings"].items():
-                        timings[k] = timings.get(k, 0.0) + v
-                    if out["picks"] is not None:
-                        picks.append(out["picks"])
-                    round_bar.update()  # no host sync: tqdm only reads the clock
-                    if progress.disable and time.time() - last_line >= args.log_interval_seconds:
-                        print(round_line(env_steps, args.total_steps, done, todo, time.time() - round_start),
-                              flush=True)
-                        last_line = time.time()
-                round_bar.close()
-                for row in rows:
-                    for k, v in row.items():
-                        sums[k], counts[k] = sums.get(k, 0.0) + v, counts.get(k, 0) + 1
-                metrics = {k: v.item() / counts[k] for k, v in sums.items()}  # over the updates that logged k
-                # one check per round (the sums carry any NaN or inf): the round is then neither saved nor logged
-                finite = all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in agent.parameters())
-                if not finite:
-                    bad = [(i, k) for i, row in enumerate(rows) for k, v in row.items() if not v.isfinite()]
-                    i, key = (bad or [(done - 1, "weights")])[0]
-                    logger.log(env_steps, {"errors/non_finite_update": state["updates"] - done + i + 1})
-                    raise UsageError(f"non-finite {key} at update {state['updates'] - done + i + 1}: stopped without "
-                                     f"saving its round (is a learning rate too high?)", 1)
-                state["round_left"] -= done
-                if "addressing/refresh_seconds" in sums:  # a sum of refreshes, not a per-update mean
-                    metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
-                metrics.update({f"time/{k}_per_update": v / max(done, 1) for k, v in timings.items()})
-                if args.method != "dreamer" and done:
-                    metrics.update(picks_metrics(picks, multitask, addressing, done, args.seq_len))
-                metrics["charts/updates"] = state["updates"]
-                if done:  # the checkpoint first: a kill between the two loses this row rather than repeating it
-                    save_checkpoint(checkpoint_path, agent, state, args)
-                    if addressing is not None:
-                        write_checkpoint(address_path, {"net": addressing.net.state_dict(),
-                                                        "x_net": addressing.x_net.state_dict(),
-                                                        "opt": addressing.opt.state_dict(), "args": checked_args(args)})
-                    logger.log(env_steps, metrics)
-                check_stop()
-                if args.capture_video and args.obs_type == "pixels":  # open-loop predictions of images only
-                    batch = to_torch(replay.sample(4, args.seq_len, rng), device)
-                    write_gif(os.path.join(task_path, "videos", f"openloop_{env_steps:08d}.gif"),
-                              open_loop_frames(agent.wm, batch))
-                if addressing is not None and addressing.D is not None and len(replay) % args.address_plot_every == 0:
-                    from report import addressing_figure  # the plotting lives in report.py
+def train_round(task: Task):
+    """(a) of Algorithm 2 for the latest episode: C updates (per env), each one the host's plan, then the addressing
+    step, the batch mix and the agent's step on the device. Its metrics stay on the device until the round ends."""
+    from tqdm import tqdm
 
-                    x = to_torch(replay.sample(16, args.seq_len, rng), device)
-                    cands = addressing.candidates[0]
-                    fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in cands],
-                                            np.array([multitask.returns[e] for e in cands]),
-                                            f"{args.method} on {task}, step {env_steps}",
-                                            addressing.candidate_rewards)
-                    fig.savefig(os.path.join(task_path, "addressing", f"q_{env_steps:08d}.png"), dpi=80)
-                    logger.writer.add_figure("addressing/probabilities", fig, env_steps)  # closes the figure
+    args, state = task.args, task.state
+    if state.get("round_at") != len(task.replay):
+        state["round_at"], state["round_left"] = len(task.replay), args.updates_per_episode * args.num_envs
+    rows, timings, picks, done = [], {}, [], 0
+    round_start, todo = time.time(), state["round_left"]
+    round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,
+                     disable=task.progress.disable)
+    for x, waited in task.sampler.batches(todo):
+        if STOP["signal"]:  # finish the current update, not the round
+            break
+        plan = plan_update(args, task.multitask, task.addressing, task.rng, task.device, task.name, state["updates"])
+        out = update(task.agent, task.addressing, x, plan, args)
+        out["timings"]["batch_sampling"] += waited
+        state["updates"], done = state["updates"] + 1, done + 1
+        rows.append({k: v.detach() for k, v in out["metrics"].items()})
+        for k, v in out["timings"].items():
+            timings[k] = timings.get(k, 0.0) + v
+        if out["picks"] is not None:
+            picks.append(out["picks"])
+        round_bar.update()  # no host sync: tqdm only reads the clock
+        if task.progress.disable and time.time() - task.last_line >= args.log_interval_seconds:
+            print(round_line(task.env_steps, args.total_steps, done, todo, time.time() - round_start), flush=True)
+            task.last_line = time.time()
+    round_bar.close()
+    return rows, timings, picks, done
 
-            # (b) evaluation without exploration noise, every eval_every environment steps (and at the last step)
-            evaluate_if_due()
 
-            # (c) collect one episode per env (random actions while prefilling) and store each atomically
-            seeds = [seed * 1_000_003 + len(replay) + i for i in range(args.num_envs)]  # episode k's seed, N or not
-            if len(replay) < args.prefill_episodes:
-                act = lambda o: rng.uniform(-1, 1, (len(o), action_size)).astype(np.float32)  # noqa: E731
-            else:
-                policy.reset(args.num_envs)
-                act = lambda o: policy.act(o, args.expl_noise, rng)  # noqa: E731
-            episodes, _ = run_episodes(envs, act, seeds, task)
-            for episode in episodes:
-                save_episode(episode_dir, len(replay), episode)
-                replay.add(episode)
-                if grows_m:
-                    multitask.add(episode)
-                steps = (len(episode["reward"]) - 1) * args.action_repeat
-                env_steps += steps
-                progress.update(steps)
-                sps = (env_steps - start_steps) / (time.time() - start_time)
-                logger.log(env_steps, {**episode_metrics("charts", [episode]), "charts/episodic_length": steps,
-                                       "charts/SPS": sps, "charts/episodes": len(replay)})
-            progress.set_postfix(ret=f"{float(episode['return']):.1f}", sps=f"{sps:.1f}")
-            if progress.disable:  # no terminal (nohup, CI): one plain line per round instead of the bar
-                print(f"step {env_steps}/{args.total_steps} | episode {len(replay)} | return "
-                      f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
-                last_line = time.time()
-        evaluate_if_due()  # the last step's evaluation
-    finally:
-        for resource in (progress, sampler, logger, envs, eval_env):
-            resource.close()
-    add_after_task(args, replay, multitask)
+def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int) -> dict:
+    """The round's means (read from the device once), checked: a NaN or inf anywhere stops the run unsaved."""
+    sums, counts = {}, {}
+    for row in rows:
+        for k, v in row.items():
+            sums[k], counts[k] = sums.get(k, 0.0) + v, counts.get(k, 0) + 1
+    metrics = {k: v.item() / counts[k] for k, v in sums.items()}  # over the updates that logged k
+    # one check per round (the sums carry any NaN or inf): the round is then neither saved nor logged
+    if not (all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in task.agent.parameters())):
+        bad = [(i, k) for i, row in enumerate(rows) for k, v in row.items() if not v.isfinite()]
+        i, key = (bad or [(done - 1, "weights")])[0]
+        task.logger.log(task.env_steps, {"errors/non_finite_update": task.state["updates"] - done + i + 1})
+        raise UsageError(f"non-finite {key} at update {task.state['updates'] - done + i + 1}: stopped without saving "
+                         f"its round (is a learning rate too high?)", 1)
+    if "addressing/refresh_seconds" in sums:  # a sum of refreshes, not a per-update mean
+        metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
+    metrics.update({f"time/{k}_per_update": v / max(done, 1) for k, v in timings.items()})
+    if task.args.method != "dreamer" and done:
+        if picks:  # the picks' indices into their pools, read once: (episode ids, starts) of each mixed batch
+            chosen = torch.stack([j for _, j in picks]).cpu().numpy()  # (mixed updates, borrow)
+            picks = [(ids[0][j], ids[1][j]) for (ids, _), j in zip(picks, chosen)]
+        metrics.update(picks_metrics(picks, task.multitask, task.addressing, done, task.args.seq_len))
+    metrics["charts/updates"] = task.state["updates"]
+    return metrics
+
+
+def end_round(task: Task, rows: list, timings: dict, picks: list, done: int):
+    """After a round: its metrics, then (when it did any update) the checkpoints and the log line, then the stop
+    check, and the round's pictures: open-loop predictions (--capture-video) and what q̂ picks."""
+    args = task.args
+    metrics = round_metrics(task, rows, timings, picks, done)
+    task.state["round_left"] -= done
+    if done:  # the checkpoint first: a kill between the two loses this row rather than repeating it
+        save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, task.state, args)
+        if task.addressing is not None:
+            write_checkpoint(task.address_path, {"net": task.addressing.net.state_dict(),
+                                                 "x_net": task.addressing.x_net.state_dict(),
+                                                 "opt": task.addressing.opt.state_dict(), "args": checked_args(args)})
+        task.logger.log(task.env_steps, metrics)
+    check_stop()
+    if args.capture_video and args.obs_type == "pixels":  # open-loop predictions of images only
+        batch = to_torch(task.replay.sample(4, args.seq_len, task.rng), task.device)
+        write_gif(os.path.join(task.path, "videos", f"openloop_{task.env_steps:08d}.gif"),
+                  open_loop_frames(task.agent.wm, batch))
+    addressing = task.addressing
+    if addressing is not None and addressing.D is not None and len(task.replay) % args.address_plot_every == 0:
+        from report import addressing_figure  # the plotting lives in report.py
+
+        x = to_torch(task.replay.sample(16, args.seq_len, task.rng), task.device)
+        cands = addressing.candidates[0]
+        fig = addressing_figure(addressing.probs(x).cpu().numpy(), [task.multitask.tasks[e] for e in cands],
+                                np.array([task.multitask.returns[e] for e in cands]),
+                                f"{args.method} on {task.name}, step {task.env_steps}", addressing.candidate_rewards)
+        fig.savefig(os.path.join(task.path, "addressing", f"q_{task.env_steps:08d}.png"), dpi=80)
+        task.logger.writer.add_figure("addressing/probabilities", fig, task.env_steps)  # closes the figure
+
+
+def evaluate_if_due(task: Task):
+    """Every --eval-every env steps once prefilled: --eval-episodes episodes with the actor's mode, logged as eval/
+    at the current step, then a checkpoint (a resumed run does not repeat this evaluation)."""
+    args, policy, state = task.args, task.policy, task.state
+    if not (args.eval_episodes and task.env_steps >= state["next_eval"] and len(task.replay) >= args.prefill_episodes):
+        return
+    episodes = []
+    for i in range(args.eval_episodes):
+        policy.reset()
+        (episode,), frames = run_episodes(task.eval_env, lambda o: policy.act(o, None, task.rng),
+                                          [task.seed * 1_000_003 + 7919 * task.env_steps + i], task.name,
+                                          record=args.capture_video and i == 0)
+        episodes.append(episode)
+        if frames:
+            write_gif(os.path.join(task.path, "videos", f"eval_{task.env_steps:08d}.gif"), frames)
+    eval_metrics = episode_metrics("eval", episodes)
+    while state["next_eval"] <= task.env_steps:
+        state["next_eval"] += args.eval_every
+    save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, state, args)
+    task.logger.log(task.env_steps, eval_metrics)
+    task.progress.write(f"step {task.env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
+    sys.stdout.flush()
+
+
+def collect(task: Task):
+    """(c) of Algorithm 2: one episode per env (random actions while prefilling), each stored atomically to M_τ
+    (and to M, unless --no-own-episodes-in-m), logged with the run's speed."""
+    args, replay = task.args, task.replay
+    seeds = [task.seed * 1_000_003 + len(replay) + i for i in range(args.num_envs)]  # episode k's seed, N or not
+    if len(replay) < args.prefill_episodes:
+        action_size = task.envs.single_action_space.shape[0]
+        act = lambda o: task.rng.uniform(-1, 1, (len(o), action_size)).astype(np.float32)  # noqa: E731
+    else:
+        task.policy.reset(args.num_envs)
+        act = lambda o: task.policy.act(o, args.expl_noise, task.rng)  # noqa: E731
+    episodes, _ = run_episodes(task.envs, act, seeds, task.name)
+    for episode in episodes:
+        save_episode(os.path.join(task.path, "episodes"), len(replay), episode)
+        replay.add(episode)
+        if args.method != "dreamer" and args.own_episodes_in_m:
+            task.multitask.add(episode)
+        steps = (len(episode["reward"]) - 1) * args.action_repeat
+        task.env_steps += steps
+        task.progress.update(steps)
+        sps = (task.env_steps - task.start[1]) / (time.time() - task.start[0])
+        task.logger.log(task.env_steps, {**episode_metrics("charts", [episode]), "charts/episodic_length": steps,
+                                         "charts/SPS": sps, "charts/episodes": len(replay)})
+    task.progress.set_postfix(ret=f"{float(episode['return']):.1f}", sps=f"{sps:.1f}")
+    if task.progress.disable:  # no terminal (nohup, CI): one plain line per round instead of the bar
+        print(f"step {task.env_steps}/{args.total_steps} | episode {len(replay)} | return "
+              f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
+        task.last_line = time.time()
 
 
 def add_after_task(args: Args, replay: Replay, multitask: Replay):

@@ -131,6 +131,15 @@ def method_setup(S, args, method: str, n: int, length: int, obs_shape, action_si
     return run_args, agent, addressing
 
 
+def one_update(S, agent, addressing, x, multitask, run_args, rng, device, i: int) -> dict:
+    """Update i of Algorithm 2 as script S runs it: the host's plan, then the update (a script from before the
+    fixed-shape update, --compare-to, plans inside its update)."""
+    if not hasattr(S, "plan_update"):
+        return S.update(agent, x, multitask, addressing, run_args, rng, device, "current", i)
+    return S.update(agent, addressing, x, S.plan_update(run_args, multitask, addressing, rng, device, "current", i),
+                    run_args)
+
+
 def timed_update(S, setup, batches, multitask, rng, device: torch.device, i: int):
     """Update i of a method_setup, the wait for its batch included, timed to the end of its GPU work: (seconds, the
     update's output with that wait in its batch_sampling timing)."""
@@ -139,7 +148,7 @@ def timed_update(S, setup, batches, multitask, rng, device: torch.device, i: int
         torch.cuda.synchronize()
     t0 = time.perf_counter()
     x, waited = next(batches)
-    out = S.update(agent, x, multitask, addressing, run_args, rng, device, "current", i)
+    out = one_update(S, agent, addressing, x, multitask, run_args, rng, device, i)
     out["timings"]["batch_sampling"] += waited
     if device.type == "cuda":
         torch.cuda.synchronize()
@@ -152,10 +161,10 @@ def profile_update(S, args, obs_shape, action_size: int, replay, multitask, rng,
 
     run_args, agent, _ = method_setup(S, args, "dreamer", 50, 50, obs_shape, action_size, device)
     batches = S.ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(2)
-    S.update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 0)
+    one_update(S, agent, None, next(batches)[0], multitask, run_args, rng, device, 0)
     cuda = device.type == "cuda"
     with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
-        S.update(agent, next(batches)[0], multitask, None, run_args, rng, device, "current", 1)
+        one_update(S, agent, None, next(batches)[0], multitask, run_args, rng, device, 1)
         if cuda:
             torch.cuda.synchronize()
     print(prof.key_averages().table(sort_by="self_cuda_time_total" if cuda else "self_cpu_time_total", row_limit=25,

@@ -31,8 +31,8 @@ def _spy_update(monkeypatch, args, current, multitask, addressing=None, task="no
     monkeypatch.setattr(rd, "train_step", spy)
     rng = np.random.default_rng(seed)
     agent = rd.Agent((3,), 2, args)
-    rd.update(agent, rd.to_torch(current.sample(args.batch_size, 5, rng), "cpu"), multitask, addressing, args, rng,
-              "cpu", task, 0)
+    x = rd.to_torch(current.sample(args.batch_size, 5, rng), "cpu")
+    rd.update(agent, addressing, x, rd.plan_update(args, multitask, addressing, rng, "cpu", task, 0), args)
     return seen
 
 

@@ -251,18 +251,23 @@ def test_batch_merge_keeps_beta_n_current_chunks():
 
     rd.train_step = spy
     try:
-        rd.update(agent, rd.to_torch(current.sample(8, 5, rng), "cpu"), multitask, None, args, rng, "cpu", "now", 0)
+        rd.update(agent, None, rd.to_torch(current.sample(8, 5, rng), "cpu"),
+                  rd.plan_update(args, multitask, None, rng, "cpu", "now", 0), args)
         obs = seen["batch"]["obs"]
         assert obs.shape[0] == 8
         assert torch.all(obs[:2] == 0) and torch.all(obs[2:] == 1)  # β·n = 2 current rows, then 6 borrowed
         assert seen["reward_mask"].tolist() == [1.0] * 2 + [0.0] * 6  # other task's rewards are masked
         assert seen["model_mask"] is None
         args = rd.Args(**{**vars(args), "wm_on_addressed": False})
-        rd.update(agent, rd.to_torch(current.sample(8, 5, rng), "cpu"), multitask, None, args, rng, "cpu", "now", 0)
+        rd.update(agent, None, rd.to_torch(current.sample(8, 5, rng), "cpu"),
+                  rd.plan_update(args, multitask, None, rng, "cpu", "now", 0), args)
         assert seen["model_mask"].tolist() == [1.0] * 2 + [0.0] * 6
         args = rd.Args(**{**vars(args), "address_prob": 0.0})
-        rd.update(agent, rd.to_torch(current.sample(8, 5, rng), "cpu"), multitask, None, args, rng, "cpu", "now", 0)
-        assert torch.all(seen["batch"]["obs"] == 0) and seen["reward_mask"] is None
+        rd.update(agent, None, rd.to_torch(current.sample(8, 5, rng), "cpu"),
+                  rd.plan_update(args, multitask, None, rng, "cpu", "now", 0), args)
+        # not mixed: the same n rows and masks, all of them x's rows, every mask one (a fixed-shape update)
+        assert torch.all(seen["batch"]["obs"] == 0) and seen["batch"]["obs"].shape[0] == 8
+        assert seen["reward_mask"].tolist() == [1.0] * 8 and seen["model_mask"].tolist() == [1.0] * 8
     finally:
         rd.train_step = real
 
