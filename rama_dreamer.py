@@ -1019,11 +1019,15 @@ class Freeze:
             p.requires_grad_(True)
 
 
-def optimizer_step(optimizer, loss, params, clip: float, retain_graph: bool = False):
-    """Backpropagate into `params` only (no gradient is computed for anything else the loss depends on), clip, step."""
+def optimizer_step(optimizer, loss, params, clip: float, retain_graph: bool = False, step: bool = True):
+    """Backpropagate into `params` only (no gradient is computed for anything else the loss depends on), clip, step.
+    step False stops after the backward pass; loss None takes the gradients already there to the clip and step."""
     params = list(params)
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward(inputs=params, retain_graph=retain_graph)
+    if loss is not None:
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward(inputs=params, retain_graph=retain_graph)
+    if not step:
+        return None
     norm = nn.utils.clip_grad_norm_(params, clip)
     optimizer.step()
     return norm
@@ -1058,13 +1062,10 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask,
                                               args.obs_std)
 
-    def model_step():  # backward into the model's parameters only, then its Adam step
-        if step_model:
-            metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(),
-                                                               args.grad_clip)
-
-    if args.imagine_after_model_step:
-        model_step()
+    if step_model:  # the model's gradients now: its graph's activations are freed before imagination needs memory
+        optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(), args.grad_clip, step=False)
+    if step_model and args.imagine_after_model_step:
+        metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, None, agent.wm.parameters(), args.grad_clip)
     timings["world_model"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -1083,9 +1084,9 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
                                                        args.grad_clip)
     metrics["charts/imagined_return"] = returns.mean()
     timings["actor_critic"] = time.perf_counter() - t0
-    if not args.imagine_after_model_step:  # last: the actor's and value's graphs read the model's old weights
+    if step_model and not args.imagine_after_model_step:  # last: imagination rolled the model as it was
         t0 = time.perf_counter()
-        model_step()
+        metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, None, agent.wm.parameters(), args.grad_clip)
         timings["world_model"] += time.perf_counter() - t0
     return {"metrics": metrics, "timings": timings}
 

@@ -15,10 +15,13 @@ Run (from the repository root):
     python benchmarks/bench_update.py --device cpu --sizes paper --updates 2 --no-collection
     python benchmarks/bench_update.py --device cuda --profile          # the operators of one paper-size update
     python benchmarks/bench_update.py --device cpu --ab-flag channels-last --methods dreamer --updates 6
+    git show 33e394e:rama_dreamer.py > /tmp/old.py                     # this version against an older one:
+    python benchmarks/bench_update.py --device cpu --compare-to /tmp/old.py --sizes paper --methods dreamer
     python benchmarks/bench_update.py --script rama_metaworld --env-id metaworld/push --num-envs 4
 """
 import dataclasses
 import importlib
+import importlib.util
 import os
 import platform
 import sys
@@ -58,6 +61,8 @@ class Options:
     """also time collection (env steps per second, 1 env and --num-envs envs, on --env-id)"""
     ab_flag: Optional[str] = None
     """instead of the table: a boolean flag (e.g. channels-last) on against off, --updates pairs in one process"""
+    compare_to: Optional[str] = None
+    """instead of the table: this script against another version of it (a file, e.g. an older commit's), paired"""
 
 
 def script_flag(argv: list) -> str:
@@ -195,34 +200,57 @@ def time_updates(S, options: Options, args, device: torch.device, obs_shape, act
                   flush=True)
 
 
-def ab_flag(S, options: Options, args, device: torch.device, obs_shape, action_size: int, replay, multitask,
-            rng) -> None:
-    """Paired timing of one boolean flag, on against off, at the first of --sizes: two agents in one process, their
-    updates alternating (which goes first alternates too), so the drift of a noisy machine falls on both. Separate
-    commands differed by ±10% on the H100 from one command to the next, more than the effects measured."""
-    name = options.ab_flag.replace("-", "_")  # main checked that it is a boolean flag
+def variants(S, options: Options, args) -> dict:
+    """The two versions a paired timing compares, {label: (script module, its args)}: --ab-flag's flag on and off,
+    or this script against --compare-to's copy of it (another commit's file, its Args filled from these flags)."""
+    if options.ab_flag:
+        name = options.ab_flag.replace("-", "_")  # main checked that it is a boolean flag
+        return {"on": (S, dataclasses.replace(args, **{name: True})),
+                "off": (S, dataclasses.replace(args, **{name: False}))}
+    spec = importlib.util.spec_from_file_location("compared_script", options.compare_to)
+    other = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(other)
+    other_args = other.Args(**{f.name: getattr(args, f.name) for f in dataclasses.fields(other.Args)
+                               if hasattr(args, f.name)})
+    return {"this": (S, args), os.path.basename(options.compare_to): (other, other_args)}
+
+
+def paired_timing(S, options: Options, args, device: torch.device, obs_shape, action_size: int, replay, multitask,
+                  rng) -> None:
+    """Paired timing of two versions (variants()) at the first of --sizes: two agents in one process, their updates
+    alternating (which goes first alternates too), so the drift of a noisy machine falls on both. Separate commands
+    differed by ±10% on the H100 from one command to the next, more than the effects measured. Prints each one's
+    median seconds per update and per part, and the paired median ratio of the second to the first."""
     n, length = SIZES[options.sizes[0]]
-    print(f"{'device':<6} {'size':<6} {'method':<8} {'flag':<14} {'on: median s':>13} {'off: median s':>14} "
-          f"{'off/on (paired median)':>23} {'pairs on faster':>16}", flush=True)
+    versions = variants(S, options, args)
+    (first, _), (second, _) = versions.items()
+    print(f"{'device':<6} {'size':<6} {'method':<8} {'version':<24} {'median s':>9} "
+          + " ".join(f"{p:>14}" for p in PARTS) + f"  {second}/{first} (paired median), pairs {first} faster",
+          flush=True)
     for method in options.methods:
-        setups, samplers, batches, seconds = {}, {}, {}, {True: [], False: []}
-        for value in (True, False):
+        setups, samplers, batches = {}, {}, {}
+        seconds, parts = {v: [] for v in versions}, {v: {p: [] for p in PARTS} for v in versions}
+        for label, (module, version_args) in versions.items():
             torch.manual_seed(args.seed)  # the same initial weights for both
-            setups[value] = method_setup(S, args, method, n, length, obs_shape, action_size, device, **{name: value})
-            samplers[value] = S.ChunkSampler(replay, n, length, np.random.default_rng(args.seed), device,
-                                             setups[value][0].prefetch)
-            batches[value] = samplers[value].batches(options.updates + 1)
+            setups[label] = method_setup(module, version_args, method, n, length, obs_shape, action_size, device)
+            samplers[label] = module.ChunkSampler(replay, n, length, np.random.default_rng(args.seed), device,
+                                                  setups[label][0].prefetch)
+            batches[label] = samplers[label].batches(options.updates + 1)
         for i in range(options.updates + 1):  # round 0 warms both up (and refreshes D)
-            for value in ((True, False) if i % 2 else (False, True)):
-                took, _ = timed_update(S, setups[value], batches[value], multitask, rng, device, i)
+            for label in (list(versions) if i % 2 else list(versions)[::-1]):
+                took, out = timed_update(versions[label][0], setups[label], batches[label], multitask, rng, device, i)
                 if i > 0:
-                    seconds[value].append(took)
+                    seconds[label].append(took)
+                    for p in PARTS:
+                        parts[label][p].append(out["timings"].get(p, 0.0))
         for sampler in samplers.values():
             sampler.close()
-        on, off = np.array(seconds[True]), np.array(seconds[False])  # (updates,) each
-        print(f"{device.type:<6} {options.sizes[0]:<6} {method:<8} {options.ab_flag:<14} {np.median(on):>13.3f} "
-              f"{np.median(off):>14.3f} {np.median(off / on):>23.3f} {f'{np.sum(off > on)}/{len(on)}':>16}",
-              flush=True)
+        a, b = np.array(seconds[first]), np.array(seconds[second])  # (updates,) each
+        for label in versions:
+            print(f"{device.type:<6} {options.sizes[0]:<6} {method:<8} {label:<24} {np.median(seconds[label]):>9.3f} "
+                  + " ".join(f"{np.median(parts[label][p]):>14.3f}" for p in PARTS), flush=True)
+        print(f"{'':<6} {'':<6} {method:<8} {'paired':<24} {f'{np.median(b / a):.3f}x':>9}  {np.sum(b > a)}/{len(a)} "
+              f"pairs {first} faster", flush=True)
 
 
 def main(S, options: Options, args) -> None:
@@ -235,6 +263,8 @@ def main(S, options: Options, args) -> None:
     if options.ab_flag and options.ab_flag.replace("-", "_") not in bools:
         raise S.UsageError(f"--ab-flag {options.ab_flag}: not a boolean flag of {options.script} "
                            f"(one of {', '.join(S.flag(n)[2:] for n in bools)})")
+    if options.compare_to and not os.path.isfile(options.compare_to):
+        raise S.UsageError(f"--compare-to {options.compare_to}: no such file")
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
     print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
           f"{torch.__version__} | threads {torch.get_num_threads()}"
@@ -250,8 +280,9 @@ def main(S, options: Options, args) -> None:
     multitask = synthetic_replay(S.Replay(), obs_shape, action_size, episodes=4, length=500, rng=rng, task="prior")
     for episode in replay.episodes:
         multitask.add(episode)
-    if options.ab_flag:
-        return ab_flag(S, options, args, torch.device(devices[-1]), obs_shape, action_size, replay, multitask, rng)
+    if options.ab_flag or options.compare_to:
+        return paired_timing(S, options, args, torch.device(devices[-1]), obs_shape, action_size, replay, multitask,
+                             rng)
     if options.profile:
         return profile_update(S, args, obs_shape, action_size, replay, multitask, rng, torch.device(devices[-1]))
     print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "

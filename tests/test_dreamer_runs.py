@@ -211,16 +211,26 @@ def test_benchmark_refuses_a_bad_flag_in_one_line():
 
 
 @pytest.mark.slow
-def test_benchmark_ab_flag_times_on_against_off_in_pairs():
+def test_benchmark_ab_flag_times_on_against_off_in_pairs(tmp_path):
     tiny = ["--obs-type", "state", "--sizes", "small", "--device", "cpu", "--no-collection", "--deter-size", "8",
             "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8", "--horizon", "3"]
-    proc = bench("--ab-flag", "prefetch", "--methods", "dreamer", "rrama", "--updates", "3", *tiny)
-    header, columns, *rows = proc.stdout.splitlines()
-    assert columns.split()[:4] == ["device", "size", "method", "flag"]
-    rows = [r.split() for r in rows]
-    assert [(r[0], r[1], r[2], r[3]) for r in rows] == [("cpu", "small", m, "prefetch") for m in ("dreamer", "rrama")]
-    assert all(float(r[4]) > 0 and float(r[5]) > 0 and float(r[6]) > 0 for r in rows)
-    assert all(r[7].endswith("/3") and 0 <= int(r[7].split("/")[0]) <= 3 for r in rows)  # pairs on faster / pairs
+    copy = tmp_path / "copy.py"  # --compare-to: this script against another version of it (here, itself)
+    copy.write_text(open(os.path.join(ROOT, "rama_dreamer.py")).read())
+    for flags, labels in ((["--ab-flag", "prefetch"], ("on", "off")), (["--compare-to", str(copy)], ("this", "copy.py"))):
+        proc = bench(*flags, "--methods", "dreamer", "rrama", "--updates", "3", *tiny)
+        header, columns, *rows = proc.stdout.splitlines()
+        assert columns.split()[:5] == ["device", "size", "method", "version", "median"]
+        rows = [r.split() for r in rows]
+        timed, paired = [r for r in rows if r[0] == "cpu"], [r for r in rows if r[0] != "cpu"]
+        assert [(r[2], r[3]) for r in timed] == [(m, label) for m in ("dreamer", "rrama") for label in labels]
+        assert all(r[1] == "small" and all(float(v) >= 0 for v in r[4:]) and float(r[4]) > 0 for r in timed)
+        assert [(r[0], r[1]) for r in paired] == [("dreamer", "paired"), ("rrama", "paired")]
+        # the second version's time over the first's, and how many of the 3 pairs the first was faster in
+        assert all(float(r[2].rstrip("x")) > 0 and 0 <= int(r[3].split("/")[0]) <= 3 and r[3].endswith("/3")
+                   for r in paired)
+    missing = run_script(os.path.join("benchmarks", "bench_update.py"), "--compare-to", str(tmp_path / "nope.py"),
+                         *tiny, check=False, timeout=60)
+    assert missing.returncode == 2 and missing.stderr.strip().endswith("nope.py: no such file"), missing.stderr
     bad = run_script(os.path.join("benchmarks", "bench_update.py"), "--ab-flag", "horizon", *tiny, check=False,
                      timeout=60)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
