@@ -42,6 +42,7 @@ import random
 import signal
 import sys
 import time
+import types
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal, Optional, Tuple
@@ -331,19 +332,12 @@ ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": No
                "address_candidates_mode": "memory", "address_logit_scale": 1.0, "address_oversample_ends": False,
                "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
                "addressed_wm_rule": "rows"}
-# --preset: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's era) where it
-# departs from the paper's text; README, deviations 15-21, names the file and line of each
-PRESETS = {"authors-code": {
-    "own_episodes_in_m": False,  # train.py:122-130: own episodes go to M only with multitask.bootstrap (False)
-    "address_lr": 1e-4, "address_adam_eps": 1e-5, "address_weight_decay": 1e-6,  # configs_addressing.yaml:141
-    "address_candidates_mode": "fresh", "address_batch": 102,  # yaml:134,147-149: 2 x 51 chunks, no full memory
-    "address_oversample_ends": True,  # yaml:134 oversample_ends, read by replay.py:82-85,193-194 as `balance`
-    "reward_mask_borrowed": "all",  # proposal.py:92-98: mask_fun = tf.zeros on every borrowed row
-    "vrama_objective": "posterior",  # proposal.py:504-519: kind `value`
-    "address_stop_grad_x": True,  # yaml:145 detach_task_embedding, for every kind (proposal.py:474-475)
-    "addressed_wm_rule": "batch",  # proposal.py:307,312 and agent.py:72-80: agent_only skips the model step
-    "address_cnn_depth": 32,  # proposal.py:256-257: f_φ's own encoder has the world model's depth (32 in v1)
-}}
+# --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
+# era) where it departs from the paper's text; README, deviations 15-22, names the file and line of each value
+PRESETS = {"authors-code": dict(
+    own_episodes_in_m=False, address_lr=1e-4, address_adam_eps=1e-5, address_weight_decay=1e-6,
+    address_candidates_mode="fresh", address_batch=102, address_oversample_ends=True, reward_mask_borrowed="all",
+    vrama_objective="posterior", address_stop_grad_x=True, addressed_wm_rule="batch", address_cnn_depth=32)}
 
 
 class UsageError(Exception):
@@ -1661,32 +1655,13 @@ def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: 
             f"round ETA {tqdm.format_interval((todo - done) / rate)}")
 
 
-@dataclass
-class Task:
-    """One task of Algorithm 1 as the steps of Algorithm 2 share it: its agent, replay M_τ and envs, the run's M and
-    f_φ, and the logging. `state` (updates done, the next evaluation's step, the current round) is checkpointed."""
-    args: Args
-    env_id: str
-    name: str
-    seed: int
-    path: str
-    device: torch.device
-    replay: Replay
-    multitask: Replay
-    addressing: Optional[Addressing]
-    rng: np.random.Generator
-    address_path: str
-    env_steps: int
-    envs: gymnasium.vector.VectorEnv = None
-    eval_env: gymnasium.vector.VectorEnv = None
-    agent: Agent = None
-    policy: Policy = None
-    sampler: ChunkSampler = None
-    logger: Logger = None
-    progress: object = None  # the tqdm bar over env steps (disabled: plain lines)
-    state: dict = None
-    start: tuple = None  # (time, env steps) when this process started the task: the run's speed counts from there
-    last_line: float = 0.0  # when the last plain line was printed
+class Task(types.SimpleNamespace):
+    """One task of Algorithm 1 as the steps of Algorithm 2 share it. Set by train_task: args, env_id, name (the
+    task's short name), seed, path (its folder), device, replay (M_τ), multitask (M), addressing (f_φ or None), rng,
+    address_path, env_steps. Set by open_task: envs, eval_env, agent, policy, sampler, logger, progress (the bar over
+    env steps; disabled: plain lines), state (updates done, the next evaluation's step, the round in progress: saved
+    in the checkpoint), start ((time, env steps) when this process began the task: the speed counts from there) and
+    last_line (when the last plain line was printed)."""
 
 
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
@@ -1694,44 +1669,43 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
     """Algorithm 2 on one task: a fresh agent, the shared M and f_φ; resumes from task_path when it has data (and
     from `checkpoint`, read by main). Each collected episode: (a) a round of C updates, (b) evaluation when due,
     (c) collection."""
-    replay = load_task_replay(args, os.path.join(task_path, "episodes"), multitask)
+    os.makedirs(os.path.join(task_path, "episodes"), exist_ok=True)
+    replay = Replay()  # M_τ: the episodes already on disk count (a resumed run recovers its step count here)
+    for path in list_episode_files(os.path.join(task_path, "episodes")):
+        add_episode(args, replay, multitask, load_episode(path))
     env_steps = sum(len(ep["reward"]) - 1 for ep in replay.episodes) * args.action_repeat
     last_eval_due = args.eval_episodes and checkpoint is not None and checkpoint["state"]["next_eval"] <= env_steps
     if env_steps >= args.total_steps and not last_eval_due:  # (a run killed before its last evaluation does it)
         print(f"task {env_id}: done ({len(replay)} episodes, {env_steps} steps)", flush=True)
-        return add_after_task(args, replay, multitask)
-    task = Task(args, env_id, make_env_spec(env_id)["name"], seed, task_path, device, replay, multitask, addressing,
-                rng, address_path, env_steps)
-    try:
-        open_task(task, checkpoint)
-        while task.env_steps < args.total_steps:
-            if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
-                end_round(task, *train_round(task))  # (a) C updates on chunks of M_τ, mixed with M
-            evaluate_if_due(task)  # (b) without exploration noise, every --eval-every env steps
-            collect(task)  # (c) an episode per env, each stored atomically
-        evaluate_if_due(task)  # the last step's evaluation
-    finally:
-        for resource in (task.progress, task.sampler, task.logger, task.envs, task.eval_env):
-            if resource is not None:
+    else:
+        task = open_task(Task(args=args, env_id=env_id, name=make_env_spec(env_id)["name"], seed=seed,
+                              path=task_path, device=device, replay=replay, multitask=multitask,
+                              addressing=addressing, rng=rng, address_path=address_path, env_steps=env_steps),
+                         checkpoint)
+        try:
+            while task.env_steps < args.total_steps:
+                if len(replay) >= args.prefill_episodes and replay.num_chunks(args.seq_len) > 0:
+                    end_round(task, *train_round(task))  # (a) C updates on chunks of M_τ, mixed with M
+                evaluate_if_due(task)  # (b) without exploration noise, every --eval-every env steps
+                collect(task)  # (c) an episode per env, each stored atomically
+            evaluate_if_due(task)  # the last step's evaluation
+        finally:
+            for resource in (task.progress, task.sampler, task.logger, task.envs, task.eval_env):
                 resource.close()
-    add_after_task(args, replay, multitask)
-
-
-def load_task_replay(args: Args, episode_dir: str, multitask: Replay) -> Replay:
-    """The current task's replay M_τ: the episodes already on disk count (a resumed run recovers its step count
-    here). M grows with every task's episodes (shared arrays, no copy): at once, or (--no-own-episodes-in-m, the
-    authors' code) only once the task is over, for the later tasks of a --task-sequence."""
-    os.makedirs(episode_dir, exist_ok=True)
-    replay = Replay()
-    for path in list_episode_files(episode_dir):
-        episode = load_episode(path)
-        replay.add(episode)
-        if args.method != "dreamer" and args.own_episodes_in_m:
+    if args.method != "dreamer" and not args.own_episodes_in_m:  # the task is over: its episodes join M now
+        for episode in replay.episodes:
             multitask.add(episode)
-    return replay
 
 
-def open_task(task: Task, checkpoint: Optional[dict]):
+def add_episode(args: Args, replay: Replay, multitask: Replay, episode: dict):
+    """An episode joins M_τ, and M (shared arrays, no copy) unless --no-own-episodes-in-m (the authors' code: the
+    episodes of a --task-sequence task join M for the tasks after it, when it is over)."""
+    replay.add(episode)
+    if args.method != "dreamer" and args.own_episodes_in_m:
+        multitask.add(episode)
+
+
+def open_task(task: Task, checkpoint: Optional[dict]) -> Task:
     """The envs, a fresh agent (or the checkpoint's), the batch sampler, the logger and the progress bar."""
     args, replay = task.args, task.replay
     task.envs, task.eval_env = make_envs(args, task.env_id, task.seed, args.num_envs), make_envs(
@@ -1761,6 +1735,7 @@ def open_task(task: Task, checkpoint: Optional[dict]):
     task.progress = tqdm(total=args.total_steps, initial=min(task.env_steps, args.total_steps), unit="step",
                          dynamic_ncols=True, disable=True if args.plain_log else None)
     task.start, task.last_line = (time.time(), task.env_steps), time.time()
+    return task
 
 
 def train_round(task: Task):
@@ -1796,19 +1771,13 @@ def train_round(task: Task):
 
 
 def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int) -> dict:
-    """The round's means (read from the device once), checked: a NaN or inf anywhere stops the run unsaved."""
+    """The round's means over the updates that logged each key, read from the device once, and checked."""
     sums, counts = {}, {}
     for row in rows:
         for k, v in row.items():
             sums[k], counts[k] = sums.get(k, 0.0) + v, counts.get(k, 0) + 1
-    metrics = {k: v.item() / counts[k] for k, v in sums.items()}  # over the updates that logged k
-    # one check per round (the sums carry any NaN or inf): the round is then neither saved nor logged
-    if not (all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in task.agent.parameters())):
-        bad = [(i, k) for i, row in enumerate(rows) for k, v in row.items() if not v.isfinite()]
-        i, key = (bad or [(done - 1, "weights")])[0]
-        task.logger.log(task.env_steps, {"errors/non_finite_update": task.state["updates"] - done + i + 1})
-        raise UsageError(f"non-finite {key} at update {task.state['updates'] - done + i + 1}: stopped without saving "
-                         f"its round (is a learning rate too high?)", 1)
+    metrics = {k: v.item() / counts[k] for k, v in sums.items()}
+    check_finite(task, rows, metrics, done)
     if "addressing/refresh_seconds" in sums:  # a sum of refreshes, not a per-update mean
         metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
     metrics.update({f"time/{k}_per_update": v / max(done, 1) for k, v in timings.items()})
@@ -1821,35 +1790,59 @@ def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int)
     return metrics
 
 
+def check_finite(task: Task, rows: list, metrics: dict, done: int):
+    """One check per round (the sums carry any NaN or inf): the round is then neither saved nor logged, and the run
+    stops with a line naming the first bad metric and its update."""
+    if all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in task.agent.parameters()):
+        return
+    bad = [(i, k) for i, row in enumerate(rows) for k, v in row.items() if not v.isfinite()]
+    i, key = (bad or [(done - 1, "weights")])[0]
+    task.logger.log(task.env_steps, {"errors/non_finite_update": task.state["updates"] - done + i + 1})
+    raise UsageError(f"non-finite {key} at update {task.state['updates'] - done + i + 1}: stopped without saving "
+                     f"its round (is a learning rate too high?)", 1)
+
+
 def end_round(task: Task, rows: list, timings: dict, picks: list, done: int):
     """After a round: its metrics, then (when it did any update) the checkpoints and the log line, then the stop
     check, and the round's pictures: open-loop predictions (--capture-video) and what q̂ picks."""
     args = task.args
     metrics = round_metrics(task, rows, timings, picks, done)
     task.state["round_left"] -= done
-    if done:  # the checkpoint first: a kill between the two loses this row rather than repeating it
-        save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, task.state, args)
-        if task.addressing is not None:
-            write_checkpoint(task.address_path, {"net": task.addressing.net.state_dict(),
-                                                 "x_net": task.addressing.x_net.state_dict(),
-                                                 "opt": task.addressing.opt.state_dict(), "args": checked_args(args)})
+    if done:  # the checkpoints first: a kill between the two loses this row rather than repeating it
+        save_checkpoints(task)
         task.logger.log(task.env_steps, metrics)
     check_stop()
     if args.capture_video and args.obs_type == "pixels":  # open-loop predictions of images only
         batch = to_torch(task.replay.sample(4, args.seq_len, task.rng), task.device)
         write_gif(os.path.join(task.path, "videos", f"openloop_{task.env_steps:08d}.gif"),
                   open_loop_frames(task.agent.wm, batch))
-    addressing = task.addressing
-    if addressing is not None and addressing.D is not None and len(task.replay) % args.address_plot_every == 0:
-        from report import addressing_figure  # the plotting lives in report.py
+    draw_addressing(task)
 
-        x = to_torch(task.replay.sample(16, args.seq_len, task.rng), task.device)
-        cands = addressing.candidates[0]
-        fig = addressing_figure(addressing.probs(x).cpu().numpy(), [task.multitask.tasks[e] for e in cands],
-                                np.array([task.multitask.returns[e] for e in cands]),
-                                f"{args.method} on {task.name}, step {task.env_steps}", addressing.candidate_rewards)
-        fig.savefig(os.path.join(task.path, "addressing", f"q_{task.env_steps:08d}.png"), dpi=80)
-        task.logger.writer.add_figure("addressing/probabilities", fig, task.env_steps)  # closes the figure
+
+def save_checkpoints(task: Task):
+    """checkpoint.pt (agent, optimisers, state, RNG states) and address.pt (f_φ, its frozen copy, its optimiser)."""
+    save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, task.state, task.args)
+    if task.addressing is not None:
+        net, x_net, opt = task.addressing.net, task.addressing.x_net, task.addressing.opt
+        write_checkpoint(task.address_path, {"net": net.state_dict(), "x_net": x_net.state_dict(),
+                                             "opt": opt.state_dict(), "args": checked_args(task.args)})
+
+
+def draw_addressing(task: Task):
+    """Every --address-plot-every episodes: q̂ over D for 16 current chunks (report.addressing_figure), as a PNG
+    and in TensorBoard."""
+    addressing, multitask = task.addressing, task.multitask
+    if addressing is None or addressing.D is None or len(task.replay) % task.args.address_plot_every:
+        return
+    from report import addressing_figure  # the plotting lives in report.py
+
+    x = to_torch(task.replay.sample(16, task.args.seq_len, task.rng), task.device)
+    candidates = addressing.candidates[0]
+    fig = addressing_figure(addressing.probs(x).cpu().numpy(), [multitask.tasks[e] for e in candidates],
+                            np.array([multitask.returns[e] for e in candidates]),
+                            f"{task.args.method} on {task.name}, step {task.env_steps}", addressing.candidate_rewards)
+    fig.savefig(os.path.join(task.path, "addressing", f"q_{task.env_steps:08d}.png"), dpi=80)
+    task.logger.writer.add_figure("addressing/probabilities", fig, task.env_steps)  # closes the figure
 
 
 def evaluate_if_due(task: Task):
@@ -1870,7 +1863,7 @@ def evaluate_if_due(task: Task):
     eval_metrics = episode_metrics("eval", episodes)
     while state["next_eval"] <= task.env_steps:
         state["next_eval"] += args.eval_every
-    save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, state, args)
+    save_checkpoints(task)
     task.logger.log(task.env_steps, eval_metrics)
     task.progress.write(f"step {task.env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
     sys.stdout.flush()
@@ -1890,9 +1883,7 @@ def collect(task: Task):
     episodes, _ = run_episodes(task.envs, act, seeds, task.name)
     for episode in episodes:
         save_episode(os.path.join(task.path, "episodes"), len(replay), episode)
-        replay.add(episode)
-        if args.method != "dreamer" and args.own_episodes_in_m:
-            task.multitask.add(episode)
+        add_episode(args, replay, task.multitask, episode)
         steps = (len(episode["reward"]) - 1) * args.action_repeat
         task.env_steps += steps
         task.progress.update(steps)
@@ -1904,13 +1895,6 @@ def collect(task: Task):
         print(f"step {task.env_steps}/{args.total_steps} | episode {len(replay)} | return "
               f"{np.mean([float(ep['return']) for ep in episodes]):.1f} | {sps:.1f} steps/s", flush=True)
         task.last_line = time.time()
-
-
-def add_after_task(args: Args, replay: Replay, multitask: Replay):
-    """--no-own-episodes-in-m: a finished task's episodes join M for the tasks after it (Algorithm 1)."""
-    if args.method != "dreamer" and not args.own_episodes_in_m:
-        for episode in replay.episodes:
-            multitask.add(episode)
 
 
 def main(args: Args, given: frozenset = frozenset()):

@@ -180,15 +180,29 @@ def test_vrama_posterior_objective_trains_phi_only():
     assert all(p.grad is None for p in agent.parameters())
 
 
-def test_own_episodes_join_m_after_the_task_without_them():
+def test_own_episodes_join_m_only_with_the_papers_algorithm_2():
     replay, multitask = rd.Replay(), rd.Replay()
-    replay.add(_episode("now", 0.0))
-    rd.add_after_task(rd.Args(method="rrama"), replay, multitask)  # the paper: they were added as they came
-    assert len(multitask) == 0
-    rd.add_after_task(rd.Args(method="rrama", own_episodes_in_m=False), replay, multitask)
-    assert multitask.tasks == ["now"]  # for the tasks after this one
-    rd.add_after_task(rd.Args(method="dreamer", own_episodes_in_m=False), replay, multitask)
+    rd.add_episode(rd.Args(method="rrama"), replay, multitask, _episode("now", 0.0))
+    assert len(replay) == 1 and multitask.tasks == ["now"]  # the paper: stored to M as it comes
+    rd.add_episode(rd.Args(method="rrama", own_episodes_in_m=False), replay, multitask, _episode("now", 0.0))
+    assert len(replay) == 2 and len(multitask) == 1  # the authors' code: M_τ only
+    rd.add_episode(rd.Args(method="dreamer"), replay, multitask, _episode("now", 0.0))
     assert len(multitask) == 1  # Dreamer keeps no M
+
+
+@pytest.mark.slow
+def test_without_own_episodes_a_sequence_addresses_the_earlier_tasks_only(tmp_path):
+    run_script("rama_dreamer.py", "--task-sequence", "walker-stand,walker-walk", "--method", "uniform",
+               "--no-own-episodes-in-m", "--run-dir", str(tmp_path), *TINY, "--obs-type", "state")
+    run_path = glob.glob(os.path.join(tmp_path, "*"))[0]
+
+    def keys(task_folder):
+        with open(os.path.join(run_path, task_folder, "metrics.jsonl")) as f:
+            return set().union(*(json.loads(line) for line in f))
+
+    assert not any(k.startswith("addressing/") for k in keys("0_walker-stand"))  # M empty: nothing to mix in
+    assert "addressing/pick_fraction/walker-stand" in keys("1_walker-walk")  # the first task's episodes, once over
+    assert "addressing/pick_fraction/walker-walk" not in keys("1_walker-walk")  # never the task's own
 
 
 def test_preset_sets_the_authors_values_and_given_flags_win(capsys):
