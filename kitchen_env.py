@@ -275,9 +275,15 @@ class KitchenEnv(gymnasium.Env):
         self.data.ctrl[:] = self._target
         mujoco.mj_forward(self.model, self.data)
         self._steps, self._distance = 0, self.distance_cm()
-        return self._observation(), self._info()
+        return self.observe(), self._info()
 
     def step(self, action):
+        reward, terminated, truncated, info = self.step_physics(action)
+        return self.observe(), reward, terminated, truncated, info
+
+    def step_physics(self, action):
+        """One control step without the observation (reward, terminated, truncated, info): an action repeat observes
+        only after its last step (rama_dreamer.ActionRepeat)."""
         n = self.active_joints
         acceleration = np.zeros(len(JOINTS))
         acceleration[:n] = np.clip(action, -1.0, 1.0) * MAX_ACC[:n]  # Appendix A: actions are accelerations
@@ -298,9 +304,9 @@ class KitchenEnv(gymnasium.Env):
         self._distance, self._steps = distance, self._steps + 1
         terminated = bool(self.object_pos()[2] < TABLE_Z - 0.1)  # fell off the table
         truncated = self._steps >= self.max_steps
-        return self._observation(), float(reward), terminated, truncated, self._info()
+        return float(reward), terminated, truncated, self._info()
 
-    def _observation(self):
+    def observe(self):
         if self.obs_type == "pixels":
             return self.render_frame(self.width, self.height)
         d = self.data

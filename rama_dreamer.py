@@ -305,9 +305,9 @@ def check_args(args: Args) -> None:
             import wandb  # noqa: F401
         except ImportError:
             raise UsageError("--track needs wandb: pip install wandb") from None
-    if args.time_limit // args.action_repeat < args.seq_len:
+    if -(-args.time_limit // args.action_repeat) < args.seq_len:  # an episode's agent steps: ActionRepeat's rule
         raise UsageError(f"--seq-len {args.seq_len} is longer than an episode "
-                         f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
+                         f"({-(-args.time_limit // args.action_repeat)} agent steps); lower it or raise --time-limit")
     for env_id in task_list(args):
         make_env_spec(env_id)  # raises a UsageError naming --env-id
     check_precision(args.precision, resolve_device(args.device))
@@ -333,7 +333,7 @@ ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": No
                "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
                "addressed_wm_rule": "rows"}
 # --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
-# era) where it departs from the paper's text; README, deviations 15-22, names the file and line of each value
+# era) where it departs from the paper's text; README, deviations 16-23, names the file and line of each value
 PRESETS = {"authors-code": dict(
     own_episodes_in_m=False, address_lr=1e-4, address_adam_eps=1e-5, address_weight_decay=1e-6,
     address_candidates_mode="fresh", address_batch=102, address_oversample_ends=True, reward_mask_borrowed="all",
@@ -398,17 +398,16 @@ def make_env_spec(env_id: str) -> dict:
 
 
 class DMCEnv(gymnasium.Env):
-    """A DeepMind Control task with action repeat, a time limit and 64x64 RGB (or state) observations. One
+    """A DeepMind Control task with 64x64 RGB (or state) observations (ActionRepeat adds the repeat and limit). One
     `mujoco.Renderer` per env: dm_control's own `physics.render` can return black frames once another exists."""
 
-    def __init__(self, env_id, seed, obs_type="pixels", image_size=64, action_repeat=2, time_limit=1000, camera=-1):
+    def __init__(self, env_id, seed, obs_type="pixels", image_size=64, camera=-1):
         import mujoco
         from dm_control import suite
 
         spec = make_env_spec(env_id)
         self._env = suite.load(spec["domain"], spec["task"], task_kwargs={"random": seed})
-        self._obs_type, self._repeat = obs_type, action_repeat
-        self._max_agent_steps = time_limit // action_repeat
+        self._obs_type, self._time_step = obs_type, None
         self._camera = camera if camera >= 0 else (2 if spec["domain"] == "quadruped" else 0)
         if self._camera >= self._env.physics.model.ncam:
             raise UsageError(f"--camera {camera}: {spec['domain']} has cameras 0-{self._env.physics.model.ncam - 1}")
@@ -420,10 +419,10 @@ class DMCEnv(gymnasium.Env):
             self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
         self._renderer = mujoco.Renderer(self._env.physics.model.ptr, image_size, image_size)
 
-    def _observe(self, time_step):
+    def observe(self):
         if self._obs_type == "pixels":
             return self.render()
-        return np.concatenate([np.asarray(v, np.float32).ravel() for v in time_step.observation.values()])
+        return np.concatenate([np.asarray(v, np.float32).ravel() for v in self._time_step.observation.values()])
 
     def render(self):
         physics = self._env.physics
@@ -433,20 +432,17 @@ class DMCEnv(gymnasium.Env):
     def reset(self, *, seed=None, options=None):
         if seed is not None:  # reseed the task's own generator: episode k of a run is reproducible by itself
             self._env.task.random.seed(seed)
-        self._steps = 0
-        return self._observe(self._env.reset()), {}
+        self._time_step = self._env.reset()
+        return self.observe(), {}
 
     def step(self, action):
-        """DMC tasks never terminate, they time out."""
-        reward = 0.0
-        for _ in range(self._repeat):
-            time_step = self._env.step(action)
-            reward += time_step.reward or 0.0
-            if time_step.last():
-                break
-        self._steps += 1
-        truncated = time_step.last() or self._steps >= self._max_agent_steps
-        return self._observe(time_step), reward, False, truncated, {}
+        reward, terminated, truncated, info = self.step_physics(action)
+        return self.observe(), reward, terminated, truncated, info
+
+    def step_physics(self, action):
+        """One env step without the observation. DMC tasks never terminate, they time out (the suite's own limit)."""
+        self._time_step = self._env.step(action)
+        return self._time_step.reward or 0.0, False, self._time_step.last(), {}
 
     def close(self):
         self._renderer.close()
@@ -454,21 +450,31 @@ class DMCEnv(gymnasium.Env):
 
 
 class ActionRepeat(gymnasium.Wrapper):
-    """Each action repeated `repeat` env steps (the kitchen's own step is one): rewards add up, success at any
-    of them counts."""
+    """Each action repeated `repeat` env steps within `time_limit` env steps per episode, for every family (README):
+    the rewards add up, success at any step counts, and an episode is truncated once it has taken time_limit env
+    steps (or by the env itself), so it lasts ceil(time_limit / repeat) agent steps, the last action repeated only
+    as far as the limit. The env steps with `step_physics(action)` -> (reward, terminated, truncated, info) and
+    renders or reads its observation once per agent step, with `observe()`."""
 
-    def __init__(self, env: gymnasium.Env, repeat: int):
+    def __init__(self, env: gymnasium.Env, repeat: int, time_limit: int):
         super().__init__(env)
-        self.repeat = repeat
+        self.repeat, self.time_limit, self.env_steps = repeat, time_limit, 0
+
+    def reset(self, **kwargs):
+        self.env_steps = 0
+        return self.env.reset(**kwargs)
 
     def step(self, action):
-        reward, success = 0.0, False
+        reward, success = 0.0, None  # success stays None for envs that do not report it
         for _ in range(self.repeat):
-            obs, r, terminated, truncated, info = self.env.step(action)
-            reward, success = reward + r, success or info["success"]
-            if terminated or truncated:
+            r, terminated, truncated, info = self.env.unwrapped.step_physics(action)
+            reward, self.env_steps = reward + r, self.env_steps + 1
+            if "success" in info:
+                success = bool(success) or bool(info["success"])
+            if terminated or truncated or self.env_steps >= self.time_limit:
                 break
-        return obs, reward, terminated, truncated, {"success": success}
+        info = info if success is None else {**info, "success": success}
+        return self.env.unwrapped.observe(), reward, terminated, truncated or self.env_steps >= self.time_limit, info
 
 
 EPISODE_EXTRAS = ()  # the keys of reset's info an episode file stores as well (none for these envs)
@@ -480,8 +486,9 @@ def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
 
         env = KitchenEnv(env_id.split("/")[1], args.kitchen_joints, args.obs_type, max_steps=args.time_limit)
         env.reset(seed=seed)  # seeds the env's generator; each episode's reset reseeds it
-        return ActionRepeat(env, args.action_repeat)
-    return DMCEnv(env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit, args.camera)
+    else:
+        env = DMCEnv(env_id, seed, args.obs_type, args.image_size, args.camera)
+    return ActionRepeat(env, args.action_repeat, args.time_limit)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1660,8 +1667,8 @@ class Task(types.SimpleNamespace):
     task's short name), seed, path (its folder), device, replay (M_τ), multitask (M), addressing (f_φ or None), rng,
     address_path, env_steps. Set by open_task: envs, eval_env, agent, policy, sampler, logger, progress (the bar over
     env steps; disabled: plain lines), state (updates done, the next evaluation's step, the round in progress: saved
-    in the checkpoint), start ((time, env steps) when this process began the task: the speed counts from there) and
-    last_line (when the last plain line was printed)."""
+    in the checkpoint), start ((time, env steps) when this process began the task: the speed counts from there),
+    last_line (when the last plain line was printed) and noticed (the first update's CPU notice is done)."""
 
 
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
@@ -1734,7 +1741,7 @@ def open_task(task: Task, checkpoint: Optional[dict]) -> Task:
     # --log-interval-seconds inside a round and one per collected episode(s)
     task.progress = tqdm(total=args.total_steps, initial=min(task.env_steps, args.total_steps), unit="step",
                          dynamic_ncols=True, disable=True if args.plain_log else None)
-    task.start, task.last_line = (time.time(), task.env_steps), time.time()
+    task.start, task.last_line, task.noticed = (time.time(), task.env_steps), time.time(), False
     return task
 
 
@@ -1757,6 +1764,11 @@ def train_round(task: Task):
         out = update(task.agent, task.addressing, x, plan, args)
         out["timings"]["batch_sampling"] += waited
         state["updates"], done = state["updates"] + 1, done + 1
+        if not task.noticed:  # the first update of this process: on a CPU, what the run would cost
+            task.noticed, notice = True, first_update_notice(args, task.device, task.env_steps,
+                                                             time.time() - round_start)
+            if notice:
+                task.progress.write(notice)
         rows.append({k: v.detach() for k, v in out["metrics"].items()})
         for k, v in out["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
@@ -1768,6 +1780,21 @@ def train_round(task: Task):
             task.last_line = time.time()
     round_bar.close()
     return rows, timings, picks, done
+
+
+def first_update_notice(args: Args, device, env_steps: int, seconds: float) -> Optional[str]:
+    """On a CPU, for pixels at the paper's size (n x L >= 50 x 50, 64x64 images): what the first update took and
+    what the run's updates would take at that speed, and the one-minute alternative. None elsewhere."""
+    if torch.device(device).type != "cpu" or args.obs_type != "pixels" or args.batch_size * args.seq_len < 2500 \
+            or args.image_size < 64:
+        return None
+    episode_steps = -(-args.time_limit // args.action_repeat) * args.action_repeat  # env steps of an episode
+    updates = max(args.total_steps - env_steps, 0) / episode_steps * args.updates_per_episode
+    days = updates * seconds / 86400
+    return (f"note: on this CPU one update at the paper's size took {seconds:.1f} s, so the {updates:,.0f} updates "
+            f"to --total-steps {args.total_steps:,} would take about "
+            + (f"{days:,.1f} days (a GPU job)" if days >= 2 else f"{24 * days:.1f} hours")
+            + ". A one-minute look on a CPU: python sweep.py sweeps/smoke.toml --workers 2, or --obs-type state")
 
 
 def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int) -> dict:

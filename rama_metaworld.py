@@ -314,9 +314,9 @@ def check_args(args: Args) -> None:
             raise UsageError("--track needs wandb: pip install wandb") from None
     if args.time_limit > 500:
         raise UsageError(f"--time-limit {args.time_limit}: Meta-World episodes last at most 500 steps")
-    if args.time_limit // args.action_repeat < args.seq_len:
+    if -(-args.time_limit // args.action_repeat) < args.seq_len:  # an episode's agent steps: ActionRepeat's rule
         raise UsageError(f"--seq-len {args.seq_len} is longer than an episode "
-                         f"({args.time_limit // args.action_repeat} agent steps); lower it or raise --time-limit")
+                         f"({-(-args.time_limit // args.action_repeat)} agent steps); lower it or raise --time-limit")
     for env_id in task_list(args):
         make_env_spec(env_id)  # raises a UsageError naming --env-id
     check_precision(args.precision, resolve_device(args.device))
@@ -342,7 +342,7 @@ ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": No
                "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
                "addressed_wm_rule": "rows"}
 # --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
-# era) where it departs from the paper's text; README, deviations 15-22, names the file and line of each value
+# era) where it departs from the paper's text; README, deviations 16-23, names the file and line of each value
 PRESETS = {"authors-code": dict(
     own_episodes_in_m=False, address_lr=1e-4, address_adam_eps=1e-5, address_weight_decay=1e-6,
     address_candidates_mode="fresh", address_batch=102, address_oversample_ends=True, reward_mask_borrowed="all",
@@ -444,7 +444,7 @@ def _task_vectors64(env_name, task_set, seed, num_tasks):
 
 
 class MetaWorldEnv(gymnasium.Env):
-    """A Meta-World v3 task with action repeat, a time limit and 64x64 RGB (or 39-d state) observations.
+    """A Meta-World v3 task with a time limit and 64x64 RGB (or 39-d state) observations (ActionRepeat repeats).
 
     Parametric variability (paper, Sec. 5): `num_tasks` task vectors (object/goal positions) of `task_set` are
     drawn at start-up from `task_seed` (default: `seed`; the eval env gets the run's seed too: the same set). Each
@@ -454,7 +454,7 @@ class MetaWorldEnv(gymnasium.Env):
     `task_vector` holds it for analysis); the goal marker (a green site) is drawn in the image, as in the visual
     Meta-World literature. `last_success`: True once info["success"] held at any env step of the episode."""
 
-    def __init__(self, env_id, seed, obs_type="pixels", image_size=64, action_repeat=2, time_limit=500,
+    def __init__(self, env_id, seed, obs_type="pixels", image_size=64, time_limit=500,
                  camera="corner2_moved", task_set="train", num_tasks=50, render_quality="fast", task_seed=None):
         import mujoco
         from metaworld.env_dict import ALL_V3_ENVIRONMENTS
@@ -472,8 +472,7 @@ class MetaWorldEnv(gymnasium.Env):
                        for v in self._vectors]
         self._env.set_task(self._tasks[0])  # builds the goal space etc.; reset() picks the episode's task
         self._rng = np.random.default_rng(seed)
-        self._obs_type, self._repeat = obs_type, action_repeat
-        self._max_agent_steps = -(-time_limit // action_repeat)  # ceil: the env's own truncation ends the last one
+        self._obs_type = obs_type
         self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32)
         self.observation_space = gymnasium.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8) \
             if obs_type == "pixels" else gymnasium.spaces.Box(-np.inf, np.inf, (39,), np.float32)
@@ -497,7 +496,7 @@ class MetaWorldEnv(gymnasium.Env):
         flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = render_quality == "default"
         flags[mujoco.mjtRndFlag.mjRND_SHADOW] = render_quality != "fast"
 
-    def _observe(self):
+    def observe(self):
         if self._obs_type == "pixels":
             return self.render()
         return self._state.astype(np.float32)  # 39-d, goal slot zeroed (partially observable)
@@ -514,22 +513,20 @@ class MetaWorldEnv(gymnasium.Env):
         self.task_vector = self._vectors[self.task_index].astype(np.float32)
         self._env.set_task(self._tasks[self.task_index])
         self._state, _ = self._env.reset()
-        self._steps, self.last_success = 0, False
-        return self._observe(), {"task_vector": self.task_vector, "task_index": self.task_index}
+        self.last_success = False
+        return self.observe(), {"task_vector": self.task_vector, "task_index": self.task_index}
 
     def step(self, action):
-        """Returns (obs, reward, terminated, truncated, info); Meta-World never terminates (not even on success)."""
+        reward, terminated, truncated, info = self.step_physics(action)
+        return self.observe(), reward, terminated, truncated, info
+
+    def step_physics(self, action):
+        """One env step without the observation: (reward, terminated, truncated, info). Meta-World never terminates
+        (not even on success); it truncates at the time limit, and a further step would raise."""
         action = np.clip(np.asarray(action, np.float64), -1.0, 1.0)  # Meta-World leaves the gripper unclipped
-        reward, truncated, success = 0.0, False, False
-        for _ in range(self._repeat):
-            self._state, r, _, truncated, info = self._env.step(action)
-            reward, success = reward + float(r), success or bool(info["success"])
-            if truncated:  # a further step would raise
-                break
-        self.last_success |= success
-        self._steps += 1
-        truncated = truncated or self._steps >= self._max_agent_steps
-        return self._observe(), reward, False, truncated, {"success": success}
+        self._state, reward, _, truncated, info = self._env.step(action)
+        self.last_success |= bool(info["success"])
+        return float(reward), False, bool(truncated), {"success": bool(info["success"])}
 
     def close(self):
         """Free the GL context now: one left to the interpreter's exit prints EGL errors. Safe to call twice."""
@@ -557,10 +554,39 @@ def expert_action(env: MetaWorldEnv) -> np.ndarray:
 EPISODE_EXTRAS = ("task_vector", "task_index")  # the keys of reset's info an episode file stores as well
 
 
+class ActionRepeat(gymnasium.Wrapper):
+    """Each action repeated `repeat` env steps within `time_limit` env steps per episode, for every family (README):
+    the rewards add up, success at any step counts, and an episode is truncated once it has taken time_limit env
+    steps (or by the env itself), so it lasts ceil(time_limit / repeat) agent steps, the last action repeated only
+    as far as the limit. The env steps with `step_physics(action)` -> (reward, terminated, truncated, info) and
+    renders or reads its observation once per agent step, with `observe()`."""
+
+    def __init__(self, env: gymnasium.Env, repeat: int, time_limit: int):
+        super().__init__(env)
+        self.repeat, self.time_limit, self.env_steps = repeat, time_limit, 0
+
+    def reset(self, **kwargs):
+        self.env_steps = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        reward, success = 0.0, None  # success stays None for envs that do not report it
+        for _ in range(self.repeat):
+            r, terminated, truncated, info = self.env.unwrapped.step_physics(action)
+            reward, self.env_steps = reward + r, self.env_steps + 1
+            if "success" in info:
+                success = bool(success) or bool(info["success"])
+            if terminated or truncated or self.env_steps >= self.time_limit:
+                break
+        info = info if success is None else {**info, "success": success}
+        return self.env.unwrapped.observe(), reward, terminated, truncated or self.env_steps >= self.time_limit, info
+
+
 def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
     # every env of a run (train and eval) draws its task vectors from the run's seed: the same set
-    return MetaWorldEnv(env_id, seed, args.obs_type, args.image_size, args.action_repeat, args.time_limit,
-                        args.camera, args.task_set, args.num_tasks, args.render_quality, task_seed=args.seed)
+    env = MetaWorldEnv(env_id, seed, args.obs_type, args.image_size, args.time_limit, args.camera, args.task_set,
+                       args.num_tasks, args.render_quality, task_seed=args.seed)
+    return ActionRepeat(env, args.action_repeat, args.time_limit)
 
 
 def collect_expert_episodes(args: Args, run_path: str):
@@ -568,7 +594,7 @@ def collect_expert_episodes(args: Args, run_path: str):
     from tqdm import tqdm
 
     envs = make_envs(args, args.env_id, args.seed, 1)
-    env = envs.envs[0]
+    env = envs.envs[0].unwrapped
     episode_dir = os.path.join(run_path, "episodes")
     os.makedirs(episode_dir, exist_ok=True)
     try:
@@ -1757,8 +1783,8 @@ class Task(types.SimpleNamespace):
     task's short name), seed, path (its folder), device, replay (M_τ), multitask (M), addressing (f_φ or None), rng,
     address_path, env_steps. Set by open_task: envs, eval_env, agent, policy, sampler, logger, progress (the bar over
     env steps; disabled: plain lines), state (updates done, the next evaluation's step, the round in progress: saved
-    in the checkpoint), start ((time, env steps) when this process began the task: the speed counts from there) and
-    last_line (when the last plain line was printed)."""
+    in the checkpoint), start ((time, env steps) when this process began the task: the speed counts from there),
+    last_line (when the last plain line was printed) and noticed (the first update's CPU notice is done)."""
 
 
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
@@ -1831,7 +1857,7 @@ def open_task(task: Task, checkpoint: Optional[dict]) -> Task:
     # --log-interval-seconds inside a round and one per collected episode(s)
     task.progress = tqdm(total=args.total_steps, initial=min(task.env_steps, args.total_steps), unit="step",
                          dynamic_ncols=True, disable=True if args.plain_log else None)
-    task.start, task.last_line = (time.time(), task.env_steps), time.time()
+    task.start, task.last_line, task.noticed = (time.time(), task.env_steps), time.time(), False
     return task
 
 
@@ -1854,6 +1880,11 @@ def train_round(task: Task):
         out = update(task.agent, task.addressing, x, plan, args)
         out["timings"]["batch_sampling"] += waited
         state["updates"], done = state["updates"] + 1, done + 1
+        if not task.noticed:  # the first update of this process: on a CPU, what the run would cost
+            task.noticed, notice = True, first_update_notice(args, task.device, task.env_steps,
+                                                             time.time() - round_start)
+            if notice:
+                task.progress.write(notice)
         rows.append({k: v.detach() for k, v in out["metrics"].items()})
         for k, v in out["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
@@ -1865,6 +1896,21 @@ def train_round(task: Task):
             task.last_line = time.time()
     round_bar.close()
     return rows, timings, picks, done
+
+
+def first_update_notice(args: Args, device, env_steps: int, seconds: float) -> Optional[str]:
+    """On a CPU, for pixels at the paper's size (n x L >= 50 x 50, 64x64 images): what the first update took and
+    what the run's updates would take at that speed, and the one-minute alternative. None elsewhere."""
+    if torch.device(device).type != "cpu" or args.obs_type != "pixels" or args.batch_size * args.seq_len < 2500 \
+            or args.image_size < 64:
+        return None
+    episode_steps = -(-args.time_limit // args.action_repeat) * args.action_repeat  # env steps of an episode
+    updates = max(args.total_steps - env_steps, 0) / episode_steps * args.updates_per_episode
+    days = updates * seconds / 86400
+    return (f"note: on this CPU one update at the paper's size took {seconds:.1f} s, so the {updates:,.0f} updates "
+            f"to --total-steps {args.total_steps:,} would take about "
+            + (f"{days:,.1f} days (a GPU job)" if days >= 2 else f"{24 * days:.1f} hours")
+            + ". A one-minute look on a CPU: python sweep.py sweeps/smoke.toml --workers 2, or --obs-type state")
 
 
 def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int) -> dict:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from helpers import TINY, run_script
-from rama_metaworld import MetaWorldEnv, UsageError, expert_action, make_env_spec, task_vectors
+from rama_metaworld import ActionRepeat, MetaWorldEnv, UsageError, expert_action, make_env_spec, task_vectors
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +126,7 @@ def test_reproducible_under_seed(push):
 
 
 def test_truncation_at_500_env_steps():
-    env = MetaWorldEnv("metaworld/push", seed=0, obs_type="state", action_repeat=2)
+    env = ActionRepeat(MetaWorldEnv("metaworld/push", seed=0, obs_type="state"), 2, 500)
     for _ in range(2):  # the env is reusable after truncation
         env.reset(seed=0)
         steps, truncated = 0, False
@@ -136,13 +136,13 @@ def test_truncation_at_500_env_steps():
             assert 0.0 <= reward <= 20.0 and not terminated  # two env steps of 0..10 each
             if truncated:
                 break
-        assert truncated and steps == 250 and env._env.curr_path_length == 500
+        assert truncated and steps == 250 and env.unwrapped._env.curr_path_length == 500
     env.close()
 
 
 @pytest.mark.slow
 def test_expert_succeeds_with_env_step_rewards_in_0_10():
-    env = MetaWorldEnv("metaworld/push", seed=0, obs_type="state", action_repeat=1)
+    env = MetaWorldEnv("metaworld/push", seed=0, obs_type="state")
     successes, rewards = [], []
     for seed in range(3):
         env.reset(seed=seed)
