@@ -39,6 +39,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 METHOD_NAMES = {"dreamer": "Dreamer", "uniform": "No addressing (uniform)", "rrama": "RRAMa", "rbrama": "RbRAMa",
                 "vrama": "VRAMa"}  # the paper's row names, in its order
+PRESET_NAMES = {"authors-code": "authors' code"}  # a run made with --preset P is method "<method>@P"
+
+
+def method_name(method: str) -> str:
+    """A row's name: the paper's name of the method, and the preset it ran with (`rrama@authors-code`)."""
+    base, _, preset = method.partition("@")
+    name = METHOD_NAMES.get(base, f"`{base}`")
+    return f"{name}, {PRESET_NAMES.get(preset, preset)}" if preset else name
 
 
 def read_metrics(metrics_path: str) -> dict:
@@ -73,6 +81,8 @@ def load_experiment(folder: str, key: str) -> list:
             cell, method, seed = parts[1], parts[2], int(parts[3])
         else:
             cell, method, seed = saved.get("task_sequence") or saved["env_id"], saved["method"], saved["seed"]
+        if saved.get("preset"):  # another configuration of the method: its own row
+            method = f"{method}@{saved['preset']}"
         tasks = [(cell, os.path.join(run_path, "metrics.jsonl"))]
         if not os.path.exists(tasks[0][1]):  # a --task-sequence run: one metrics.jsonl per task
             tasks = [(f"{cell}/{os.path.basename(os.path.dirname(p))}", p)
@@ -139,19 +149,25 @@ def improvement_ci(scores_x, scores_y, reps: int, seed: int) -> tuple:
 
 
 def method_order(methods) -> list:
-    return [m for m in METHOD_NAMES if m in methods] + sorted(m for m in methods if m not in METHOD_NAMES)
+    """The paper's rows in its order, then each preset's in that order, then any other."""
+    presets = sorted({m.partition("@")[2] for m in methods} - {""})
+    known = [m if not preset else f"{m}@{preset}" for preset in [""] + presets for m in METHOD_NAMES]
+    return [m for m in known if m in methods] + sorted(m for m in methods if m not in known)
 
 
 def fmt(x: float, decimals: int) -> str:
     return "–" if np.isnan(x) else f"{x:,.{decimals}f}"
 
 
-def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str):
+def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str,
+                 beside: tuple = ()):
     runs = load_experiment(folder, key)
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
     experiment = os.path.basename(os.path.normpath(folder))
     tasks = sorted({r["task"] for r in runs})
+    for other in beside:  # --beside: another experiment's runs of the same tasks join the tables
+        runs += [r for r in load_experiment(other, key) if r["task"] in tasks]
     methods = method_order({r["method"] for r in runs})
     note = " (the paper's metric)" if key == "charts/episodic_return" else ""
     header = ["method"] + [f"{t}: {h}" for t in tasks for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]
@@ -159,13 +175,15 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
              f"Per run: the average of `{key}` over the whole run{note}. Per task and method: the mean "
              f"± standard error over seeds, and the interquartile mean with a 95% stratified-bootstrap confidence "
              f"interval (rliable, {reps} resamples, seed {seed}). With fewer than 4 seeds the IQM equals the mean.",
-             f"Made by `python report.py {folder}{options}` from the results alone.", "",
+             f"Made by `python report.py {folder}{options}` from the results alone"
+             + (f" (with the runs of {', '.join(f'`{b}`' for b in beside)} of the same tasks)." if beside else "."),
+             "",
              "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     scores = {}  # (task, method) -> each seed's run average, the number both tables start from
     for r in runs:
         scores.setdefault((r["task"], r["method"]), []).append(r["values"].mean())
     for method in methods:
-        row = [METHOD_NAMES.get(method, f"`{method}`")]
+        row = [method_name(method)]
         for task in tasks:
             if (task, method) not in scores:
                 row += ["–", "–"]
@@ -194,17 +212,18 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
 def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed: int, decimals: int) -> list:
     """Markdown lines: per task, each method's probability of improvement over Dreamer and over uniform mixing.
     scores: (task, method) -> the run averages of its seeds."""
-    references = [m for m in ("dreamer", "uniform") if m in methods]
+    # Dreamer, uniform mixing, and uniform mixing under each preset (the same configuration as the preset's rows)
+    references = [m for m in ["dreamer", "uniform"] + [m for m in methods if m.startswith("uniform@")] if m in methods]
     if not references or len(methods) < 2:
         return []
-    header = ["method"] + [f"{t}: P(> {METHOD_NAMES[ref]})" for t in tasks for ref in references]
+    header = ["method"] + [f"{t}: P(> {method_name(ref)})" for t in tasks for ref in references]
     lines = ["", "Does a method beat Dreamer, or uniform mixing? P(X > Y) is the probability that a run of the row's "
              "method scores higher than a run of the column's (ties count half; rliable's probability of "
              f"improvement), with its 95% stratified-bootstrap CI ({reps} resamples, seed {seed}). 0.5 is no "
              "difference; a CI that lies above 0.5 says the row's method is better with 95% confidence.", "",
              "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     for method in methods:
-        row = [METHOD_NAMES.get(method, f"`{method}`")]
+        row = [method_name(method)]
         for task in tasks:
             for ref in references:
                 x, y = scores.get((task, method)), scores.get((task, ref))
@@ -259,7 +278,7 @@ def diagnostics_table(runs: list, tasks: list, methods: list, decimals: int) -> 
             diags = cells.get((task, method))
             if not diags:
                 continue
-            lines.append(f"| {task} | {METHOD_NAMES.get(method, f'`{method}`')} | {len(diags)} | "
+            lines.append(f"| {task} | {method_name(method)} | {len(diags)} | "
                          f"{mean(diags, 'mixed', 2)} | {mean(diags, 'other_tasks', 2)} | "
                          f"{mean(diags, 'picked_return', decimals)} / {mean(diags, 'candidate_return', decimals)} | "
                          f"{mean(diags, 'picked_chunk', decimals)} / {mean(diags, 'candidate_chunk', decimals)} | "
@@ -291,7 +310,7 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
                 se = np.where(n > 1, np.nanstd(curves, 0, ddof=1) / np.sqrt(np.maximum(n, 1)), 0.0)
             keep = n > 0  # bins where some run ended an episode: joined by the line
             colour = f"C{methods.index(method) % 10}"  # a method keeps its colour in every panel
-            ax.plot(centres[keep], mean[keep], color=colour, label=f"{METHOD_NAMES.get(method, method)} ({len(curves)})",
+            ax.plot(centres[keep], mean[keep], color=colour, label=f"{method_name(method)} ({len(curves)})",
                     marker="." if keep.sum() < 20 else None)
             ax.fill_between(centres[keep], (mean - se)[keep], (mean + se)[keep], color=colour, alpha=0.2)
         ax.set_title(task, fontsize=9)
@@ -373,6 +392,9 @@ def main():
     parser.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
     parser.add_argument("--bins", type=int, default=50, help="curves: bins of environment steps")
     parser.add_argument("--decimals", type=int, default=1, help="decimals in the tables")
+    parser.add_argument("--beside", nargs="+", default=[], metavar="FOLDER",
+                        help="other experiment folders whose runs of the same tasks join the tables (e.g. the same "
+                             "grid under another --preset)")
     args = parser.parse_args()
     if args.runs:
         return plot_runs(args.runs, args.out or "curve.png", args.title)
@@ -381,6 +403,10 @@ def main():
     # the options that change the report, for its "Made by" line
     options = "".join(f" --{name} {getattr(args, name)}" for name in ("key", "reps", "seed", "bins", "decimals")
                       if getattr(args, name) != parser.get_default(name))
+    options += "".join(f" --beside {b}" for b in args.beside)
+    for folder in args.beside:
+        if not glob.glob(os.path.join(folder, "*", "args.json")):
+            sys.exit(f"error: --beside {folder}: holds no run folders (<run>/args.json)")
     for folder in args.folders:
         if not os.path.isdir(folder):
             sys.exit(f"error: {folder}: no such folder")
@@ -392,7 +418,8 @@ def main():
         for experiment in experiments:
             out = args.out if args.out and len(experiments) == 1 else \
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
-            write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals, options)
+            write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals, options,
+                         tuple(args.beside))
 
 
 if __name__ == "__main__":

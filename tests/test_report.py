@@ -173,3 +173,30 @@ def test_runs_curves_write_a_png(tmp_path):  # what plot_curves.py did
 def test_runs_curves_name_a_bad_folder(tmp_path):
     proc = run_script("report.py", "--runs", str(tmp_path), check=False)
     assert proc.returncode != 0 and str(tmp_path) in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_preset_runs_are_their_own_rows_beside_another_experiment(tmp_path):
+    """Runs made with --preset P are method@P rows, compared with uniform mixing under the same preset too; --beside
+    adds another experiment's runs of the same tasks (here the paper-text rows), and no other task."""
+    authors, paper = tmp_path / "results" / "authors", tmp_path / "results" / "paper"
+    preset = {"env_id": "dmc/x", "seed": 1, "preset": "authors-code"}
+    write_run(authors, "walk__uniform__s1", [1.0], {**preset, "method": "uniform"})
+    write_run(authors, "walk__rrama__s1", [3.0], {**preset, "method": "rrama"})
+    write_run(paper, "walk__uniform__s1", [2.0], {"env_id": "dmc/x", "method": "uniform", "seed": 1})
+    write_run(paper, "run__uniform__s1", [9.0], {"env_id": "dmc/x", "method": "uniform", "seed": 1})  # not in authors
+    run_script("report.py", str(authors), "--beside", str(paper), "--reps", "200", "--decimals", "2")
+    text = (authors / "report.md").read_text()
+    rows = [line.split("|")[1].strip() for line in text.splitlines()
+            if line.startswith("| ") and "±" in line and not line.startswith("| method")]
+    assert rows == ["No addressing (uniform)", "No addressing (uniform), authors' code", "RRAMa, authors' code"]
+    assert "| run__" not in text and "run: mean" not in text and f"--beside {paper}" in text  # walk only
+    header = next(line for line in text.splitlines() if line.startswith("| method") and "P(>" in line)
+    assert header.count("P(>") == 2 and "P(> No addressing (uniform), authors' code)" in header
+    rrama = next(line for line in text.splitlines() if line.startswith("| RRAMa, authors' code") and "[" in line
+                 and "±" not in line)
+    cells = [c.strip() for c in rrama.strip("|").split("|")]
+    assert cells[1].startswith("1.00 [") and cells[2].startswith("1.00 [")  # 3 beats 2 and 1
+    bad = run_script("report.py", str(authors), "--beside", str(tmp_path / "nope"), check=False)
+    assert bad.returncode != 0 and "--beside" in bad.stderr and "no run folders" in bad.stderr
+    assert report.method_order({"rrama@authors-code", "dreamer", "uniform@authors-code", "uniform"}) == [
+        "dreamer", "uniform", "uniform@authors-code", "rrama@authors-code"]
