@@ -4,7 +4,8 @@
     python sweep.py sweeps/cartpole_tables.toml --workers 2              # 2 runs at a time, OMP_NUM_THREADS = cores / 2
     python sweep.py sweeps/cartpole_tables.toml --ray-address auto       # each run a Ray task on a running cluster
 
-The spec (see sweeps/*.toml) names the script, the flags common to every run, and cells. A cell has its own flags,
+The spec (see sweeps/*.toml) names the script, the flags common to every run, and cells. A cell has its own flags
+(and may name its own `script`, e.g. rama_metaworld.py beside rama_dreamer.py cells),
 its methods and seeds, and optionally `prior`: a cell above (`prior`) or one method's runs (`balance/dreamer`, which
 may be this cell's own first method). Those runs, with the same seed, become --prior-dirs; a prior named by one
 run only (a cell with one seed) serves every seed. A run starts only after
@@ -56,7 +57,7 @@ METHODS = ("dreamer", "uniform", "vrama", "rrama", "rbrama")  # the scripts' --m
 MANAGED = ("--run-dir", "--resume", "--seed", "--prior-dirs")  # the sweep sets these itself
 SPEC_KEYS = {"experiment", "script", "flags", "seeds", "cpus", "gpus", "cells"}
 CELL_KEYS = {"flags", "methods", "seeds", "prior", "prior_dirs", "method_flags", "cpus", "gpus",
-             "keep_episodes_min_return"}
+             "keep_episodes_min_return", "script"}
 
 
 class SpecError(Exception):
@@ -106,9 +107,14 @@ def load_spec(path: str, runs_dir: str = "runs", results_dir: str = "results"):
     if set(spec) - SPEC_KEYS:
         raise SpecError(f"{path}: unknown keys {sorted(set(spec) - SPEC_KEYS)} (known: {sorted(SPEC_KEYS)})")
     experiment = spec.get("experiment", os.path.splitext(os.path.basename(path))[0])
-    script = os.path.join(ROOT, spec.get("script", "rama_dreamer.py"))
-    if not os.path.isfile(script):
-        raise SpecError(f"{path}: script {spec.get('script')!r} is not a file next to sweep.py")
+
+    def script_of(where: str, table: dict, default: str) -> str:
+        script = os.path.join(ROOT, table.get("script", default))
+        if not os.path.isfile(script):
+            raise SpecError(f"{where}: script {table.get('script')!r} is not a file next to sweep.py")
+        return script
+
+    spec_script = script_of(path, spec, "rama_dreamer.py")
     runs = {}
     for cell, c in spec.get("cells", {}).items():
         where = f"{path}: cell {cell!r}"
@@ -119,7 +125,7 @@ def load_spec(path: str, runs_dir: str = "runs", results_dir: str = "results"):
         priors = [c["prior"]] if isinstance(c.get("prior"), str) else c.get("prior", [])
         if cell in priors:
             raise SpecError(f"{where}: prior {cell!r} is the cell itself; name one of its methods ({cell}/dreamer)")
-        method_flags = c.get("method_flags", {})
+        method_flags, script = c.get("method_flags", {}), script_of(where, c, spec_script)  # a cell may run another
         for method in c.get("methods", ["dreamer"]):
             if "__" in method:
                 raise SpecError(f"{where}: method {method!r}: '__' separates a run name's parts; use another name")

@@ -121,3 +121,15 @@ def test_a_cpu_users_first_pixel_update_gives_the_cost_of_the_run():
     assert rd.first_update_notice(rd.resolve_defaults(rd.Args(batch_size=16)), "cpu", 0, 12.0) is None
     short = rd.resolve_defaults(rd.Args(total_steps=20_000))  # 2,000 updates x 12 s = 6.7 hours
     assert "about 6.7 hours" in rd.first_update_notice(short, "cpu", 0, 12.0)
+
+
+def test_family_references_score_the_random_policy_and_the_expert():
+    """tools/family_references.py, one episode each: the kitchen's expert pushes the box in (a return near the 50 cm
+    it starts away), a random arm never moves it; Meta-World's drawer-close expert succeeds through the same envs."""
+    from tools.family_references import score
+
+    kitchen = {p: score(rd, "kitchen/bluebox", {}, p, episodes=1) for p in ("random", "expert")}
+    assert kitchen["expert"]["success_rate"] == 1.0 and 40.0 < kitchen["expert"]["return"] <= 50.0
+    assert kitchen["random"]["success_rate"] == 0.0 and abs(kitchen["random"]["return"]) < 1.0
+    drawer = score(rm, "metaworld/drawer-close", {"task_set": "new"}, "expert", episodes=1)
+    assert drawer["success_rate"] == 1.0 and drawer["episodes"] == 1

@@ -66,6 +66,7 @@ method_flags.rrama_nosg = "--method rrama --address-stop-grad-x False"
                           "dmc/walker-walk", "--prior-min-return", "600", "--method", "rrama",
                           "--address-stop-grad-x", "False", "--seed", "2"]
     assert by_name["walk__dreamer__s2"].deps == []  # Dreamer takes no prior data, so it waits for nothing
+    assert {r.script for r in runs} == {os.path.join(ROOT, "rama_dreamer.py")}  # the spec's default script
     # the command: --prior-dirs names the prior's folder; a started run is resumed, keeping --device and the budget
     assert sweep.command(nosg, "python")[-2:] == ["--prior-dirs", os.path.join("R", "exp", "stand__dreamer__s2")]
     run = by_name["stand__dreamer__s1"]
@@ -76,6 +77,22 @@ method_flags.rrama_nosg = "--method rrama --address-stop-grad-x False"
     assert sweep.command(run, "python") == ["python", run.script, "--resume",
                                             str(tmp_path / "started" / "dmc_walker-stand__x__dreamer__1__123"),
                                             "--device", "cpu", "--total-steps", "1000"]
+
+
+def test_a_cell_may_run_the_other_script(tmp_path):
+    spec = write_spec(tmp_path, """
+experiment = "families"
+flags = "--obs-type state"
+[cells.kitchen]
+flags = "--env-id kitchen/bluebox"
+[cells.drawer]
+script = "rama_metaworld.py"
+flags = "--env-id metaworld/drawer-close --task-set new"
+""")
+    _, runs = sweep.load_spec(spec, "R", "S")
+    assert [(r.name, os.path.basename(r.script)) for r in runs] == [("kitchen__dreamer__s1", "rama_dreamer.py"),
+                                                                    ("drawer__dreamer__s1", "rama_metaworld.py")]
+    assert sweep.command(runs[1], "python")[:2] == ["python", os.path.join(ROOT, "rama_metaworld.py")]
 
 
 def test_a_prior_made_once_serves_every_seed(tmp_path):
@@ -201,6 +218,7 @@ def test_a_raised_budget_resumes_done_runs_with_the_new_total_steps(tmp_path):
     ('[cells.a]\nmethods = ["dreamer", "rrama"]\nprior = "a"\n', r"is the cell itself"),
     ('[cells.a]\nmethods = ["mine"]\n', r"method 'mine' is not one of"),
     ('[cells.a__b]\n', r"'__' separates"),
+    ('[cells.a]\nscript = "nope.py"\n', r"cell 'a': script 'nope.py' is not a file"),
 ])
 def test_spec_errors_name_the_problem(tmp_path, text, message):
     with pytest.raises(sweep.SpecError, match=message):
