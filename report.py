@@ -167,7 +167,8 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     experiment = os.path.basename(os.path.normpath(folder))
     tasks = sorted({r["task"] for r in runs})
     for other in beside:  # --beside: another experiment's runs of the same tasks join the tables
-        runs += [r for r in load_experiment(other, key) if r["task"] in tasks]
+        name = os.path.basename(os.path.normpath(other))  # its runs named `experiment/run` in the Runs table
+        runs += [dict(r, name=f"{name}/{r['name']}") for r in load_experiment(other, key) if r["task"] in tasks]
     methods = method_order({r["method"] for r in runs})
     note = " (the paper's metric)" if key == "charts/episodic_return" else ""
     header = ["method"] + [f"{t}: {h}" for t in tasks for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]

@@ -190,6 +190,7 @@ def test_preset_runs_are_their_own_rows_beside_another_experiment(tmp_path):
             if line.startswith("| ") and "±" in line and not line.startswith("| method")]
     assert rows == ["No addressing (uniform)", "No addressing (uniform), authors' code", "RRAMa, authors' code"]
     assert "| run__" not in text and "run: mean" not in text and f"--beside {paper}" in text  # walk only
+    assert "| walk__uniform__s1 | walk |" in text and "| paper/walk__uniform__s1 | walk |" in text  # the Runs table
     header = next(line for line in text.splitlines() if line.startswith("| method") and "P(>" in line)
     assert header.count("P(>") == 2 and "P(> No addressing (uniform), authors' code)" in header
     rrama = next(line for line in text.splitlines() if line.startswith("| RRAMa, authors' code") and "[" in line
