@@ -305,12 +305,17 @@ def check_args(args: Args) -> None:
             import wandb  # noqa: F401
         except ImportError:
             raise UsageError("--track needs wandb: pip install wandb") from None
-    if -(-args.time_limit // args.action_repeat) < args.seq_len:  # an episode's agent steps: ActionRepeat's rule
-        raise UsageError(f"--seq-len {args.seq_len} is longer than an episode "
-                         f"({-(-args.time_limit // args.action_repeat)} agent steps); lower it or raise --time-limit")
+    if episode_agent_steps(args) < args.seq_len:
+        raise UsageError(f"--seq-len {args.seq_len} is longer than an episode ({episode_agent_steps(args)} agent "
+                         f"steps); lower it or raise --time-limit")
     for env_id in task_list(args):
         make_env_spec(env_id)  # raises a UsageError naming --env-id
     check_precision(args.precision, resolve_device(args.device))
+
+
+def episode_agent_steps(args: Args) -> int:
+    """Agent steps of a full episode: ceil(--time-limit / --action-repeat), ActionRepeat's rule."""
+    return -(-args.time_limit // args.action_repeat)
 
 
 def task_list(args: Args) -> list:
@@ -1193,6 +1198,7 @@ class Addressing:
         self.candidate_rewards = None  # (N_c,) their stored reward sums, for the logs and the picture
         self.D = None  # (N_c, U)
         self.pool = None  # the candidates' chunks as stored, on the device: what the picks of q̂ over D gather
+        self.pool_reward_mask = None  # (N_c,) their reward-mask values when borrowed (plan_update sets them)
 
     def embed(self, batch: dict):
         """f_φ(M_j): (B, U)."""
@@ -1273,12 +1279,16 @@ def plan_update(args: Args, multitask: Replay, addressing: Optional[Addressing],
         if memory_mode and (addressing.D is None or updates_done % args.address_refresh == 0):
             t0 = time.perf_counter()
             addressing.refresh(multitask, seq_len, args.address_candidates, rng)
+            # the candidates' mask values change only here (a task's first update refreshes: 0 updates done, or no D)
+            addressing.pool_reward_mask = borrowed_reward_mask(args, multitask, addressing.candidates[0], task_name,
+                                                               device)
             plan["refresh_seconds"] = time.perf_counter() - t0
         plan["m_batch"] = to_torch(multitask.sample(args.address_batch, seq_len, rng, ends), device)  # M_j ~ M
     if borrow == 0:
         return plan
     if memory_mode:
         plan["pool_ids"], plan["pool"], plan["pool_embed"] = addressing.candidates, addressing.pool, addressing.D
+        plan["pool_reward_mask"] = addressing.pool_reward_mask
     else:  # `uniform`: the borrowed chunks themselves; `fresh` (the authors' code): m new chunks for q̂ to pick from
         plan["pool_ids"] = multitask.sample_ids(borrow if addressing is None else args.address_batch, seq_len, rng,
                                                 ends)
@@ -1286,12 +1296,16 @@ def plan_update(args: Args, multitask: Replay, addressing: Optional[Addressing],
         if addressing is not None:
             addressing.candidates = plan["pool_ids"]
             addressing.candidate_rewards = multitask.chunk_rewards(*plan["pool_ids"], seq_len)
-    # a borrowed chunk keeps its reward loss only if it is of this task (--reward-mask-borrowed all: none does)
-    same_task = [args.reward_mask_borrowed == "other-tasks" and multitask.tasks[e] == task_name
-                 for e in plan["pool_ids"][0]]
-    plan["pool_reward_mask"] = torch.tensor(same_task, dtype=torch.float32).to(device, non_blocking=True)  # (P,)
+        plan["pool_reward_mask"] = borrowed_reward_mask(args, multitask, plan["pool_ids"][0], task_name, device)
     plan["mix"] = torch.tensor(float(plan["mixed"])).to(device, non_blocking=True)  # () 0 or 1
     return plan
+
+
+def borrowed_reward_mask(args: Args, multitask: Replay, episode_ids, task_name: str, device):
+    """(P,) per chunk of a pool: 1 if it keeps its reward loss when borrowed, i.e. it is of this task (the paper
+    masks other tasks' chunks; --reward-mask-borrowed all: none keeps it)."""
+    same_task = [args.reward_mask_borrowed == "other-tasks" and multitask.tasks[e] == task_name for e in episode_ids]
+    return torch.tensor(same_task, dtype=torch.float32).to(device, non_blocking=True)
 
 
 def keep_rows(args: Args) -> int:
@@ -1788,7 +1802,7 @@ def first_update_notice(args: Args, device, env_steps: int, seconds: float) -> O
     if torch.device(device).type != "cpu" or args.obs_type != "pixels" or args.batch_size * args.seq_len < 2500 \
             or args.image_size < 64:
         return None
-    episode_steps = -(-args.time_limit // args.action_repeat) * args.action_repeat  # env steps of an episode
+    episode_steps = episode_agent_steps(args) * args.action_repeat  # env steps of an episode
     updates = max(args.total_steps - env_steps, 0) / episode_steps * args.updates_per_episode
     days = updates * seconds / 86400
     return (f"note: on this CPU one update at the paper's size took {seconds:.1f} s, so the {updates:,.0f} updates "
