@@ -113,6 +113,8 @@ class Args:
     """sample (and pin) the next batch in a background thread while the current update trains"""
     num_envs: int = 1
     """environments collecting in parallel (subprocesses via gymnasium's AsyncVectorEnv when > 1)"""
+    cuda_graph: bool = False
+    """CUDA only: capture each update as CUDA graphs and replay them (GraphedUpdate; eager if a capture fails)"""
 
     # Environment
     action_repeat: int = 2
@@ -320,6 +322,8 @@ def check_args(args: Args) -> None:
     for env_id in task_list(args):
         make_env_spec(env_id)  # raises a UsageError naming --env-id
     check_precision(args.precision, resolve_device(args.device))
+    if args.cuda_graph and resolve_device(args.device).type != "cuda":
+        raise UsageError(f"--cuda-graph needs a CUDA device (--device {args.device} is {resolve_device(args.device)})")
 
 
 def episode_agent_steps(args: Args) -> int:
@@ -339,13 +343,13 @@ ADDRESSED_METHODS = ("vrama", "rrama", "rbrama")
 # the flags that may be given beside --resume (they change neither the networks nor what was collected); the other
 # flags come from the run's args.json
 RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
-                "plain_log", "log_interval_seconds", "precision", "channels_last", "prefetch")
+                "plain_log", "log_interval_seconds", "precision", "channels_last", "prefetch", "cuda_graph")
 # flags added after runs were saved, with the value that was those runs' only behaviour: an args.json without one
 # resumes with this value; any other missing flag is refused
 ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": None, "address_weight_decay": 0.0,
                "address_candidates_mode": "memory", "address_logit_scale": 1.0, "address_oversample_ends": False,
                "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
-               "addressed_wm_rule": "rows"}
+               "addressed_wm_rule": "rows", "cuda_graph": False}
 # --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
 # era) where it departs from the paper's text; README, deviations 16-23, names the file and line of each value
 PRESETS = {"authors-code": dict(
@@ -825,7 +829,7 @@ class MLP(nn.Module):
         self.hidden, self.out = nn.Sequential(*hidden), nn.Linear(in_size, out_size)
 
     def forward(self, x):
-        with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16):
+        with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16, cache_enabled=False):
             x = self.hidden(x)
         return self.out(x.float())
 
@@ -857,7 +861,7 @@ class ConvEncoder(nn.Module):
         x = obs.flatten(0, 1)  # (B*T, 3, H, W)
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
-        with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16):
+        with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16, cache_enabled=False):
             x = self.net(x)
         return x.float().unflatten(0, obs.shape[:2])
 
@@ -890,7 +894,7 @@ class ConvDecoder(nn.Module):
             nn.ConvTranspose2d(depth, channels, (kh, kw), (sh, sw)))  # (3, H, W)
 
     def forward(self, feat):  # (B, T, F) -> (B, T, 3, H, W)
-        with torch.autocast(feat.device.type, torch.bfloat16, enabled=self.bf16):
+        with torch.autocast(feat.device.type, torch.bfloat16, enabled=self.bf16, cache_enabled=False):
             x = self.linear(feat.flatten(0, 1))  # (B*T, 32*depth)
             # the first transposed conv reads a 1x1 input: it is a matrix product with its weight (in, out*5*5), the
             # same numbers 6x faster on CPU than oneDNN's transposed-conv kernel (tested against it)
@@ -1166,9 +1170,11 @@ class Agent(nn.Module):
                            args.actor_mean_scale)
         self.value = MLP(feat, args.mlp_units, 3, 1)
         set_speed_options(self, args.precision, args.channels_last)
-        self.model_opt = torch.optim.Adam(self.wm.parameters(), lr=args.model_lr, eps=args.adam_eps)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr, eps=args.adam_eps)
-        self.value_opt = torch.optim.Adam(self.value.parameters(), lr=args.value_lr, eps=args.adam_eps)
+        # capturable (--cuda-graph): Adam keeps its step counts on the device, so that a CUDA graph can hold its step
+        adam = functools.partial(torch.optim.Adam, eps=args.adam_eps, capturable=args.cuda_graph)
+        self.model_opt = adam(self.wm.parameters(), lr=args.model_lr)
+        self.actor_opt = adam(self.actor.parameters(), lr=args.actor_lr)
+        self.value_opt = adam(self.value.parameters(), lr=args.value_lr)
 
     def optimizers(self):
         return {"model": self.model_opt, "actor": self.actor_opt, "value": self.value_opt}
@@ -1301,7 +1307,8 @@ class Addressing:
         # decoupled weight decay: torch scales it by lr, so wd / lr gives the authors' θ ← (1 − wd)·θ per step
         self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr,
                                     eps=args.address_adam_eps or args.adam_eps, decoupled_weight_decay=True,
-                                    weight_decay=args.address_weight_decay / args.address_lr)
+                                    weight_decay=args.address_weight_decay / args.address_lr,
+                                    capturable=args.cuda_graph)
         # f(x)'s network: f_φ itself, or a frozen copy of its initial weights. Under the stop-gradient a step of φ
         # is meant to move f(M_j) only (Section 4.3), yet the shared weights move f(x) with it (README, deviations)
         self.x_net = self.net if args.address_x_net == "shared" else copy.deepcopy(self.net).requires_grad_(False)
@@ -1315,6 +1322,7 @@ class Addressing:
         self.D = None  # (N_c, U)
         self.pool = None  # the candidates' chunks as stored, on the device: what the picks of q̂ over D gather
         self.pool_reward_mask = None  # (N_c,) their reward-mask values when borrowed (plan_update sets them)
+        self.pool_embed, self.pool_valid = None, None  # D, or D padded for --cuda-graph with its valid rows (N_p,)
 
     def embed(self, batch: dict):
         """f_φ(M_j): (B, U)."""
@@ -1347,7 +1355,7 @@ class Addressing:
         log_q = logits.detach().log_softmax(-1)
         entropy = -(log_q.exp() * log_q).sum(-1).mean()
         return {"addressing/loss": loss.detach(), "addressing/entropy": entropy,
-                "addressing/entropy_uniform": torch.tensor(np.log(logits.shape[-1])),
+                "addressing/entropy_uniform": torch.full_like(entropy, np.log(logits.shape[-1])),
                 "addressing/grad_norm": grad_norm, **metrics}
 
     @torch.no_grad()
@@ -1362,7 +1370,17 @@ class Addressing:
             parts.append(to_device(multitask.gather(*ids, seq_len), self.device))
             embeddings.append(self.embed(preprocess(parts[-1])))
         self.pool = {k: torch.cat([part[k] for part in parts], 0) for k in parts[0]}  # (N_c, L, ...)
-        self.D = torch.cat(embeddings, 0)  # (N_c, U)
+        self.D = self.pool_embed = torch.cat(embeddings, 0)  # (N_c, U)
+        self.pool_valid = None
+
+    def pad_pool(self, cap: int):
+        """--cuda-graph: the pool, D and the mask padded to a power of two (at most --address-candidates) rows, so
+        that a captured update serves until M outgrows it; q̂ never picks the padding (pool_valid)."""
+        size = min(1 << (len(self.D) - 1).bit_length(), cap)  # refresh embeds at most cap candidates
+        pad = lambda t: torch.cat([t, t.new_zeros((size - len(t), *t.shape[1:]))])  # noqa: E731
+        self.pool, self.pool_embed = {k: pad(v) for k, v in self.pool.items()}, pad(self.D)  # (N_p, ...)
+        self.pool_reward_mask = pad(self.pool_reward_mask)
+        self.pool_valid = torch.arange(size, device=self.D.device) < len(self.D)  # (N_p,)
 
     @torch.no_grad()
     def logits(self, x: dict, D=None):
@@ -1374,11 +1392,13 @@ class Addressing:
         return self.logits(x).softmax(-1)
 
     @torch.no_grad()
-    def pick(self, x: dict, pool: dict, pool_embed=None):
+    def pick(self, x: dict, pool: dict, pool_embed=None, pool_valid=None):
         """j ~ q̂(j | x_i) over a pool of chunks (as stored) whose embeddings are pool_embed (None: embedded here),
-        drawn on the device by Gumbel-max: (n,)."""
-        pool_embed = self.embed(preprocess(pool)) if pool_embed is None else pool_embed
-        return gumbel_max(self.logits(x, pool_embed), self.generator)
+        drawn on the device by Gumbel-max: (n,). pool_valid (P,) False: padding, never picked."""
+        logits = self.logits(x, self.embed(preprocess(pool)) if pool_embed is None else pool_embed)  # (n, P)
+        if pool_valid is not None:
+            logits = logits.masked_fill(~pool_valid, float("-inf"))
+        return gumbel_max(logits, self.generator)
 
 
 def plan_update(args: Args, multitask: Replay, addressing: Optional[Addressing], rng, device, task_name: str,
@@ -1398,13 +1418,18 @@ def plan_update(args: Args, multitask: Replay, addressing: Optional[Addressing],
             # the candidates' mask values change only here (a task's first update refreshes: 0 updates done, or no D)
             addressing.pool_reward_mask = borrowed_reward_mask(args, multitask, addressing.candidates[0], task_name,
                                                                device)
+            if args.cuda_graph:
+                addressing.pad_pool(args.address_candidates)
             plan["refresh_seconds"] = time.perf_counter() - t0
         plan["m_batch"] = to_torch(multitask.sample(args.address_batch, seq_len, rng, ends), device)  # M_j ~ M
     if borrow == 0:
         return plan
     if memory_mode:
-        plan["pool_ids"], plan["pool"], plan["pool_embed"] = addressing.candidates, addressing.pool, addressing.D
+        plan["pool_ids"], plan["pool"] = addressing.candidates, addressing.pool
+        plan["pool_embed"] = addressing.pool_embed
         plan["pool_reward_mask"] = addressing.pool_reward_mask
+        if addressing.pool_valid is not None:
+            plan["pool_valid"] = addressing.pool_valid
     else:  # `uniform`: the borrowed chunks themselves; `fresh` (the authors' code): m new chunks for q̂ to pick from
         plan["pool_ids"] = multitask.sample_ids(borrow if addressing is None else args.address_batch, seq_len, rng,
                                                 ends)
@@ -1450,7 +1475,8 @@ def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: dict, 
         if addressing is None:  # `uniform`: the host drew the pool's chunks uniformly from M
             picks = torch.arange(borrow, device=x["reward"].device)
         else:  # j ~ q̂(j | x_i) for the first rows of x
-            picks = addressing.pick({k: v[:borrow] for k, v in x.items()}, plan["pool"], plan.get("pool_embed"))
+            picks = addressing.pick({k: v[:borrow] for k, v in x.items()}, plan["pool"], plan.get("pool_embed"),
+                                    plan.get("pool_valid"))
         borrowed = preprocess({k: v[picks] for k, v in plan["pool"].items()})  # (borrow, L, ...)
         mix = plan["mix"].bool()
         batch = {k: torch.cat([x[k][:keep], torch.where(mix, borrowed[k], x[k][keep:])], 0) for k in x}
@@ -1464,8 +1490,93 @@ def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: dict, 
     out = train_step(agent, batch, args, reward_mask, model_mask, step_model)
     out["metrics"].update(metrics)
     out["timings"].update(timings)
-    out["picks"] = (plan["pool_ids"], picks) if plan.get("mixed") else None  # picks: indices into the pool
+    out["picks"] = (plan["pool_ids"], picks) if picks is not None else None  # indices into the pool (read if mixed)
     return out
+
+
+class GraphedUpdate:
+    """--cuda-graph: `update` captured as CUDA graphs and replayed, one launch instead of ~1,000. A graph has fixed
+    shapes: one per kind of update (its tensors' shapes; and mixed or not where that decides the model step). The
+    first `warmup` updates of a kind run eagerly on a side stream, as a capture needs (cuBLAS and the allocator set
+    up). Each replay first copies x and the plan into the graph's static tensors (the memory-mode pool only after a
+    refresh made a new one). A capture that fails prints one line and leaves the run eager."""
+
+    def __init__(self, agent: Agent, addressing: Optional[Addressing], args: Args, warmup: int = 3):
+        self.agent, self.addressing, self.args, self.warmup = agent, addressing, args, warmup
+        self.graphs, self.seen, self.failed, self.stream, self.mempool = {}, {}, False, None, None
+
+    def __call__(self, x: dict, plan: dict) -> dict:
+        inputs = {f"x.{k}": v for k, v in x.items()}  # name -> tensor: everything the graph reads
+        for part in ("m_batch", "pool"):
+            inputs.update({f"{part}.{k}": v for k, v in plan.get(part, {}).items()})
+        inputs.update({k: v for k, v in plan.items() if isinstance(v, torch.Tensor)})
+        mixed_decides = not self.args.wm_on_addressed and self.args.addressed_wm_rule == "batch"
+        key = (tuple((k, tuple(v.shape)) for k, v in inputs.items()), mixed_decides and plan.get("mixed"))
+        if self.failed or (key not in self.graphs and self.seen.get(key, 0) < self.warmup):
+            self.seen[key] = self.seen.get(key, 0) + 1
+            return self.on_side_stream(lambda: update(self.agent, self.addressing, x, plan, self.args))
+        if key not in self.graphs:
+            try:  # a larger memory-mode pool retires the graphs of the smaller one
+                pool_rows = lambda k: dict(k[0]).get("pool_embed")  # noqa: E731
+                self.graphs = {k: g for k, g in self.graphs.items() if pool_rows(k) == pool_rows(key)}
+                self.graphs[key] = self.capture(inputs, plan)
+            except Exception as e:  # the run goes on, eagerly
+                self.failed = True
+                print(f"--cuda-graph: capture failed, updates run eagerly ({type(e).__name__}: {str(e)[:160]})",
+                      flush=True)
+                return self(x, plan)
+        graph, t0 = self.graphs[key], time.perf_counter()
+        for name, source in inputs.items():  # no input changes in place: one copied before holds the same values
+            if graph.copied.get(name) is not source:  # (the memory-mode pool: until the next refresh)
+                graph.static[name].copy_(source, non_blocking=True)
+                graph.copied[name] = source
+        graph.replay()
+        metrics = dict(zip(graph.metric_names, graph.metrics.clone().unbind()))
+        timings = {"batch_sampling": 0.0, "graph_replay": time.perf_counter() - t0}
+        if "refresh_seconds" in plan:
+            metrics["addressing/refresh_seconds"] = torch.tensor(plan["refresh_seconds"])
+            timings["addressing"] = plan["refresh_seconds"]
+        picks = (plan["pool_ids"], graph.picks.clone()) if plan.get("mixed") else None
+        return {"metrics": metrics, "timings": timings, "picks": picks}
+
+    def capture(self, inputs: dict, plan: dict) -> types.SimpleNamespace:
+        """Record `update` on static copies of the inputs; the metrics it returns become one vector."""
+        static = {k: v.clone() for k, v in inputs.items()}
+        x = {k[2:]: v for k, v in static.items() if k.startswith("x.")}
+        static_plan = {k: plan[k] for k in ("mixed", "pool_ids") if k in plan}
+        static_plan.update({k: v for k, v in static.items() if "." not in k})
+        for part in ("m_batch", "pool"):
+            if part in plan:
+                static_plan[part] = {k.split(".", 1)[1]: v for k, v in static.items() if k.startswith(part + ".")}
+
+        def recorded():
+            out = update(self.agent, self.addressing, x, static_plan, self.args)
+            picks = out["picks"][1] if out["picks"] is not None else None
+            return list(out["metrics"]), torch.stack([v.detach().float() for v in out["metrics"].values()]), picks
+
+        replay, (names, vector, picks) = self.record(recorded)  # vector: (K,) the K metrics
+        return types.SimpleNamespace(static=static, copied={}, replay=replay, metric_names=names, metrics=vector,
+                                     picks=picks)
+
+    def record(self, fn):
+        """fn captured as a CUDA graph (its kernels are recorded, not run): (replay, fn's outputs as static tensors).
+        One memory pool serves every graph (they never run at once); thread_local: the prefetch thread may pin."""
+        graph = torch.cuda.CUDAGraph()
+        if self.addressing is not None:  # the picks' own generator: each replay advances it as eager draws would
+            graph.register_generator_state(self.addressing.generator)
+        self.mempool = self.mempool or torch.cuda.graph_pool_handle()
+        with torch.cuda.graph(graph, pool=self.mempool, stream=self.stream, capture_error_mode="thread_local"):
+            outputs = fn()
+        return graph.replay, outputs
+
+    def on_side_stream(self, fn):
+        """An eager update on the capture's stream (ordered after and before the default stream's work)."""
+        self.stream = self.stream or torch.cuda.Stream()
+        self.stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(self.stream):
+            out = fn()
+        torch.cuda.current_stream().wait_stream(self.stream)
+        return out
 
 
 def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int,
@@ -1664,10 +1775,16 @@ def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
     write_checkpoint(path, payload)
 
 
+def load_optimizer(opt, saved: dict):
+    """An optimiser's saved state under this run's `capturable` (--cuda-graph may differ from the saving run's)."""
+    capturable = opt.param_groups[0]["capturable"]
+    opt.load_state_dict({**saved, "param_groups": [{**g, "capturable": capturable} for g in saved["param_groups"]]})
+
+
 def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
     load_state(path, agent, payload["agent"])
     for name, opt in agent.optimizers().items():
-        opt.load_state_dict(payload["optimizers"][name])
+        load_optimizer(opt, payload["optimizers"][name])
     random.setstate(payload["rng"]["python"])
     np.random.set_state(payload["rng"]["numpy"])
     torch.set_rng_state(payload["rng"]["torch"])
@@ -1795,10 +1912,11 @@ def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: 
 class Task(types.SimpleNamespace):
     """One task of Algorithm 1 as the steps of Algorithm 2 share it. Set by train_task: args, env_id, name (the
     task's short name), seed, path (its folder), device, replay (M_τ), multitask (M), addressing (f_φ or None), rng,
-    address_path, env_steps. Set by open_task: envs, eval_env, agent, policy, sampler, logger, progress (the bar over
-    env steps; disabled: plain lines), state (updates done, the next evaluation's step, the round in progress: saved
-    in the checkpoint), start ((time, env steps) when this process began the task: the speed counts from there),
-    last_line (when the last plain line was printed) and noticed (the first update's CPU notice is done)."""
+    address_path, env_steps. Set by open_task: envs, eval_env, agent, policy, step (`update`, or its CUDA graphs),
+    sampler, logger, progress (the bar over env steps; disabled: plain lines), state (updates done, the next
+    evaluation's step, the round in progress: saved in the checkpoint), start ((time, env steps) when this process
+    began the task: the speed counts from there), last_line (when the last plain line was printed) and noticed (the
+    first update's CPU notice is done)."""
 
 
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
@@ -1850,6 +1968,8 @@ def open_task(task: Task, checkpoint: Optional[dict]) -> Task:
     task.agent = Agent(task.envs.single_observation_space.shape, task.envs.single_action_space.shape[0],
                        args).to(task.device)
     task.policy = Policy(task.agent, task.device)
+    task.step = GraphedUpdate(task.agent, task.addressing, args) if args.cuda_graph else functools.partial(
+        update, task.agent, task.addressing, args=args)  # (x, plan) -> the update's output
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
     # updates it still has to do (a run stopped mid-round finishes it; one killed after a round does not redo it)
     task.state = {"updates": 0, "next_eval": args.eval_every}
@@ -1891,7 +2011,7 @@ def train_round(task: Task):
         if STOP["signal"]:  # finish the current update, not the round
             break
         plan = plan_update(args, task.multitask, task.addressing, task.rng, task.device, task.name, state["updates"])
-        out = update(task.agent, task.addressing, x, plan, args)
+        out = task.step(x, plan)
         out["timings"]["batch_sampling"] += waited
         state["updates"], done = state["updates"] + 1, done + 1
         if not task.noticed:  # the first update of this process: on a CPU, what the run would cost
@@ -1902,7 +2022,7 @@ def train_round(task: Task):
         rows.append({k: v.detach() for k, v in out["metrics"].items()})
         for k, v in out["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
-        if out["picks"] is not None:
+        if plan.get("mixed"):
             picks.append(out["picks"])
         round_bar.update()  # no host sync: tqdm only reads the clock
         if task.progress.disable and time.time() - task.last_line >= args.log_interval_seconds:
@@ -2097,7 +2217,7 @@ def main(args: Args, given: frozenset = frozenset()):
             load_state(address_path, addressing.net, saved_address["net"])
             if addressing.x_net is not addressing.net:  # --address-x-net frozen: its saved initial weights
                 load_state(address_path, addressing.x_net, saved_address["x_net"])
-            addressing.opt.load_state_dict(saved_address["opt"])
+            load_optimizer(addressing.opt, saved_address["opt"])
 
     # Algorithm 1: tasks in order; the agent restarts per task, M and f_φ carry over
     for k, (env_id, task_path) in enumerate(zip(tasks, task_paths)):

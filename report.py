@@ -5,6 +5,8 @@
     python report.py results/cartpole_tables --out docs # write them to docs/ instead
     python report.py --runs runs/<run> [runs/<run> ...] --out docs/curve.png   # the training and evaluation
                                                            # returns of single runs, in one figure
+    python report.py results/pixels_dreamer --key eval/episodic_return \
+        --reference results/pixels_dreamer/reference.json  # against Dreamer v1's published curves
 
 An experiment folder holds one folder per run, named <cell>__<method>__s<seed> as sweep.py writes them, each with
 args.json and metrics.jsonl. A folder named otherwise is grouped by its args.json (env id, method, seed). A
@@ -22,6 +24,9 @@ their batches (from the runs' addressing/ logs): the share of other tasks' chunk
 what was picked against what could have been, how peaked q is, and what the bandit objective gained.
 The curves show, per task, one line per method. Each run's returns are averaged in --bins equal bins of
 environment steps; the line is the mean over seeds of those bin averages, and the band is ± one s.e.
+--reference adds a published curve (tools/dreamer_v1_reference.py writes Dreamer v1's): drawn as its mean ± std
+band, and a table of each run's value at the reference's checkpoints (its logged step nearest each, within 10%)
+against the reference's mean ± 2 std.
 """
 import argparse
 import glob
@@ -160,7 +165,7 @@ def fmt(x: float, decimals: int) -> str:
 
 
 def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str,
-                 beside: tuple = ()):
+                 beside: tuple = (), reference: dict = None):
     runs = load_experiment(folder, key)
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
@@ -197,6 +202,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
         lines.append("| " + " | ".join(row) + " |")
     lines += improvement_table(scores, tasks, methods, reps, seed, decimals)
     lines += diagnostics_table(runs, tasks, methods, decimals)
+    lines += reference_table(runs, tasks, methods, reference, decimals) if reference else []
     figure = "curves.png"
     lines += ["", f"![learning curves]({figure})", "", "## Runs", "",
               "| run | task | episodes | last env step | average return |", "| --- | --- | --- | --- | --- |"]
@@ -206,7 +212,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     with open(os.path.join(out, "report.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     plot_curves(runs, tasks, methods, key, bins, f"{experiment}: {key} (mean ± s.e. over seeds)",
-                os.path.join(out, figure))
+                os.path.join(out, figure), reference)
     print(f"wrote {os.path.join(out, 'report.md')} and {os.path.join(out, figure)}")
 
 
@@ -287,8 +293,42 @@ def diagnostics_table(runs: list, tasks: list, methods: list, decimals: int) -> 
     return lines
 
 
-def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, title: str, path: str):
-    """One panel per task; per method, the mean over seeds of each run's bin averages, with a ± s.e. band."""
+def reference_table(runs: list, tasks: list, methods: list, reference: dict, decimals: int) -> list:
+    """Each task's runs at the reference's checkpoints: their values (the logged step nearest each checkpoint, within
+    10% of it) against the reference's mean ± std, and how many seeds lie within its mean ± 2 std."""
+    lines = ["", f"## Against {reference['name']}", "",
+             f"Each run's `{reference['key']}` at its logged step nearest each checkpoint (within 10%), against "
+             f"{reference['name']}'s mean ± std over its seeds ({reference['source']}). A run within the reference's "
+             f"mean ± 2 std is consistent with it.", "",
+             "| task | method | checkpoint | runs: mean ± std (seeds) | steps used | reference: mean ± std (seeds) | "
+             "runs within ± 2 std |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for task in tasks:
+        current = {r["current_task"] for r in runs if r["task"] == task}
+        ref = next((reference["tasks"][c] for c in current if c in reference["tasks"]), None)
+        for method in methods if ref else []:
+            for checkpoint in reference["checkpoints"]:
+                i = ref["steps"].index(checkpoint)
+                low, high = ref["mean"][i] - 2 * ref["std"][i], ref["mean"][i] + 2 * ref["std"][i]
+                picked = []  # (step, value) of each run near the checkpoint
+                for r in (r for r in runs if r["task"] == task and r["method"] == method):
+                    j = int(np.argmin(np.abs(r["steps"] - checkpoint)))
+                    if abs(r["steps"][j] - checkpoint) <= 0.1 * checkpoint:
+                        picked.append((int(r["steps"][j]), r["values"][j]))
+                if not picked:
+                    continue
+                values = np.array([v for _, v in picked])
+                lines.append(f"| {task} | {method_name(method)} | {checkpoint:,} | {fmt(values.mean(), decimals)} ± "
+                             f"{fmt(values.std(), decimals)} ({len(values)}) | "
+                             f"{', '.join(f'{s:,}' for s in sorted({s for s, _ in picked}))} | "
+                             f"{fmt(ref['mean'][i], decimals)} ± {fmt(ref['std'][i], decimals)} ({ref['seeds'][i]}) | "
+                             f"{int(((values >= low) & (values <= high)).sum())} of {len(values)} |")
+    return lines
+
+
+def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, title: str, path: str,
+                reference: dict = None):
+    """One panel per task; per method, the mean over seeds of each run's bin averages, with a ± s.e. band; a
+    reference curve of the task, if given, as a grey mean ± std band."""
     cols = min(3, len(tasks))
     rows = (len(tasks) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.5 * rows), squeeze=False)
@@ -314,6 +354,13 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
             ax.plot(centres[keep], mean[keep], color=colour, label=f"{method_name(method)} ({len(curves)})",
                     marker="." if keep.sum() < 20 else None)
             ax.fill_between(centres[keep], (mean - se)[keep], (mean + se)[keep], color=colour, alpha=0.2)
+        current = {r["current_task"] for r in runs if r["task"] == task}
+        ref = next((reference["tasks"][c] for c in current if c in reference["tasks"]), None) if reference else None
+        if ref:
+            ref_steps, mean, std = (np.array(ref[k]) for k in ("steps", "mean", "std"))
+            shown = ref_steps <= edges[-1] * 1.05  # the reference as far as the runs go
+            ax.plot(ref_steps[shown], mean[shown], "k--", label=f"{reference['name']} (mean ± std)")
+            ax.fill_between(ref_steps[shown], (mean - std)[shown], (mean + std)[shown], color="grey", alpha=0.25)
         ax.set_title(task, fontsize=9)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(key.split("/")[-1].replace("_", " "))
@@ -393,6 +440,8 @@ def main():
     parser.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
     parser.add_argument("--bins", type=int, default=50, help="curves: bins of environment steps")
     parser.add_argument("--decimals", type=int, default=1, help="decimals in the tables")
+    parser.add_argument("--reference", default=None, metavar="FILE", help="a published curve to draw and tabulate "
+                        "against (JSON, as tools/dreamer_v1_reference.py writes it)")
     parser.add_argument("--beside", nargs="+", default=[], metavar="FOLDER",
                         help="other experiment folders whose runs of the same tasks join the tables (e.g. the same "
                              "grid under another --preset)")
@@ -405,6 +454,17 @@ def main():
     options = "".join(f" --{name} {getattr(args, name)}" for name in ("key", "reps", "seed", "bins", "decimals")
                       if getattr(args, name) != parser.get_default(name))
     options += "".join(f" --beside {b}" for b in args.beside)
+    reference = None
+    if args.reference:
+        try:
+            with open(args.reference) as f:
+                reference = json.load(f)
+            assert {"name", "key", "checkpoints", "source", "tasks"} <= set(reference)
+        except (OSError, ValueError, AssertionError) as e:
+            sys.exit(f"error: --reference {args.reference}: not a reference file ({type(e).__name__})")
+        if reference["key"] != args.key:
+            sys.exit(f"error: --reference {args.reference} holds {reference['key']}: give --key {reference['key']}")
+        options += f" --reference {args.reference}"
     for folder in args.beside:
         if not glob.glob(os.path.join(folder, "*", "args.json")):
             sys.exit(f"error: --beside {folder}: holds no run folders (<run>/args.json)")
@@ -420,7 +480,7 @@ def main():
             out = args.out if args.out and len(experiments) == 1 else \
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
             write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals, options,
-                         tuple(args.beside))
+                         tuple(args.beside), reference)
 
 
 if __name__ == "__main__":

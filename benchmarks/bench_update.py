@@ -15,6 +15,8 @@ Run (from the repository root):
     python benchmarks/bench_update.py --device cpu --sizes paper --updates 2 --no-collection
     python benchmarks/bench_update.py --device cuda --profile          # the operators of one paper-size update
     python benchmarks/bench_update.py --device cpu --ab-flag channels-last --methods dreamer --updates 6
+    python benchmarks/bench_update.py --device cuda --ab-flag cuda-graph --sizes paper --updates 20 \
+        --json results/benchmarks/DATE-h100-graphs.json                # CUDA graphs on/off, paired, as JSON too
     git show 33e394e:rama_dreamer.py > /tmp/old.py                     # this version against an older one:
     python benchmarks/bench_update.py --device cpu --compare-to /tmp/old.py --sizes paper --methods dreamer
     python benchmarks/bench_update.py --script rama_metaworld --env-id metaworld/push --num-envs 4
@@ -22,6 +24,7 @@ Run (from the repository root):
 import dataclasses
 import importlib
 import importlib.util
+import json
 import os
 import platform
 import sys
@@ -41,6 +44,7 @@ SCRIPTS = ("rama_dreamer", "rama_metaworld")
 STATE_AND_ACTION = {"rama_dreamer": ((24,), 6), "rama_metaworld": ((39,), 4)}
 SIZES = {"paper": (50, 50), "small": (16, 50)}  # (n chunks, L steps)
 PARTS = ["world_model", "actor_critic", "addressing", "batch_sampling"]
+ROWS = []  # the printed table's rows as dicts, for --json
 
 
 @dataclass
@@ -49,7 +53,9 @@ class Options:
     script: Literal["rama_dreamer", "rama_metaworld"] = "rama_dreamer"
     """the script to time (the update is code the two share; collection runs the script's environment)"""
     updates: int = 3
-    """timed updates per setting (after one warm-up update)"""
+    """timed updates per setting (after the warm-up updates)"""
+    warmup: Optional[int] = None
+    """untimed updates first; None = 1, or 5 with --cuda-graph (3 eager on the side stream, the capture, a replay)"""
     methods: Tuple[Literal["dreamer", "uniform", "rrama", "vrama", "rbrama"], ...] = (
         "dreamer", "uniform", "rrama", "vrama", "rbrama")
     """methods to time"""
@@ -63,6 +69,8 @@ class Options:
     """instead of the table: a boolean flag (e.g. channels-last) on against off, --updates pairs in one process"""
     compare_to: Optional[str] = None
     """instead of the table: this script against another version of it (a file, e.g. an older commit's), paired"""
+    json: Optional[str] = None
+    """also write the table's rows, and the first line's facts, to this JSON file"""
 
 
 def script_flag(argv: list) -> str:
@@ -129,47 +137,59 @@ def time_collection(S, args, device: torch.device) -> None:
 
 
 def method_setup(S, args, method: str, n: int, length: int, obs_shape, action_size: int, device, **flags):
-    """The args, agent and (for the addressed methods) f_φ of one timed method at size (n, L), flags overridden."""
+    """The args, agent, f_φ (for the addressed methods) and the update step (x, plan) -> output of one timed method
+    at size (n, L), flags overridden: the script's `update`, or its GraphedUpdate with --cuda-graph."""
     run_args = dataclasses.replace(args, batch_size=n, seq_len=length, method=method, **flags)
     agent = S.Agent(obs_shape, action_size, run_args).to(device)
     addressing = S.Addressing(obs_shape, action_size, run_args, device) if method in S.ADDRESSED_METHODS else None
-    return run_args, agent, addressing
+    if getattr(run_args, "cuda_graph", False):
+        return run_args, agent, addressing, S.GraphedUpdate(agent, addressing, run_args)
+    return run_args, agent, addressing, lambda x, plan: S.update(agent, addressing, x, plan, run_args)
 
 
-def one_update(S, agent, addressing, x, multitask, run_args, rng, device, i: int) -> dict:
+def warmup_updates(options: Options, args) -> int:
+    """--warmup, or its default: 1, or 5 when a timed version captures CUDA graphs."""
+    if options.warmup is not None:
+        return options.warmup
+    graphs = getattr(args, "cuda_graph", False) or (options.ab_flag or "").replace("-", "_") == "cuda_graph"
+    return 5 if graphs else 1
+
+
+def one_update(S, setup, x, multitask, rng, device, i: int) -> dict:
     """Update i of Algorithm 2 as script S runs it: the host's plan, then the update (a script from before the
     fixed-shape update, --compare-to, plans inside its update)."""
+    run_args, agent, addressing, step = setup
     if not hasattr(S, "plan_update"):
         return S.update(agent, x, multitask, addressing, run_args, rng, device, "current", i)
-    return S.update(agent, addressing, x, S.plan_update(run_args, multitask, addressing, rng, device, "current", i),
-                    run_args)
+    return step(x, S.plan_update(run_args, multitask, addressing, rng, device, "current", i))
 
 
 def timed_update(S, setup, batches, multitask, rng, device: torch.device, i: int):
     """Update i of a method_setup, the wait for its batch included, timed to the end of its GPU work: (seconds, the
     update's output with that wait in its batch_sampling timing)."""
-    run_args, agent, addressing = setup
     if device.type == "cuda":
         torch.cuda.synchronize()
     t0 = time.perf_counter()
     x, waited = next(batches)
-    out = one_update(S, agent, addressing, x, multitask, run_args, rng, device, i)
+    out = one_update(S, setup, x, multitask, rng, device, i)
     out["timings"]["batch_sampling"] += waited
     if device.type == "cuda":
         torch.cuda.synchronize()
     return time.perf_counter() - t0, out
 
 
-def profile_update(S, args, obs_shape, action_size: int, replay, multitask, rng, device: torch.device) -> None:
+def profile_update(S, options: Options, args, obs_shape, action_size: int, replay, multitask, rng, device: torch.device) -> None:
     """Where the time of one paper-size Dreamer update goes, operator by operator (after a warm-up update)."""
     from torch.profiler import ProfilerActivity, profile
 
-    run_args, agent, _ = method_setup(S, args, "dreamer", 50, 50, obs_shape, action_size, device)
-    batches = S.ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(2)
-    one_update(S, agent, None, next(batches)[0], multitask, run_args, rng, device, 0)
+    setup = method_setup(S, args, "dreamer", 50, 50, obs_shape, action_size, device)
+    warmup = warmup_updates(options, args)
+    batches = S.ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(warmup + 1)
+    for i in range(warmup):
+        one_update(S, setup, next(batches)[0], multitask, rng, device, i)
     cuda = device.type == "cuda"
     with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
-        one_update(S, agent, None, next(batches)[0], multitask, run_args, rng, device, 1)
+        one_update(S, setup, next(batches)[0], multitask, rng, device, warmup)
         if cuda:
             torch.cuda.synchronize()
     print(prof.key_averages().table(sort_by="self_cuda_time_total" if cuda else "self_cpu_time_total", row_limit=25,
@@ -186,15 +206,19 @@ def time_updates(S, options: Options, args, device: torch.device, obs_shape, act
             setup = method_setup(S, args, method, n, length, obs_shape, action_size, device)
             totals = dict.fromkeys(PARTS + ["total"], 0.0)
             sampler = S.ChunkSampler(replay, n, length, rng, device, args.prefetch)
-            batches = sampler.batches(options.updates + 1)
-            for i in range(options.updates + 1):  # update 0 warms up (and refreshes D, once per C)
+            warmup = warmup_updates(options, args)
+            batches = sampler.batches(options.updates + warmup)
+            for i in range(options.updates + warmup):  # the warm-up (update 0 refreshes D, once per C)
                 seconds, out = timed_update(S, setup, batches, multitask, rng, device, i)
-                if i > 0:
+                if i >= warmup:
                     totals["total"] += seconds / options.updates
                     for k in PARTS:
                         totals[k] += out["timings"].get(k, 0.0) / options.updates
             reference = reference or totals["total"]
             sampler.close()
+            ROWS.append({"device": str(device), "size": size, "n": n, "L": length, "method": method,
+                         "seconds": totals["total"], "vs_dreamer": totals["total"] / reference,
+                         **{p: totals[p] for p in PARTS}, "flags": run_flags(args)})
             print(f"{str(device):<6} {size:<6} {n:>3} {length:>3} {method:<8} {totals['total']:>9.3f} "
                   f"{totals['total'] / reference:>9.2f}x " + " ".join(f"{totals[p]:>14.3f}" for p in PARTS),
                   flush=True)
@@ -222,7 +246,7 @@ def paired_timing(S, options: Options, args, device: torch.device, obs_shape, ac
     differed by ±10% on the H100 from one command to the next, more than the effects measured. Prints each one's
     median seconds per update and per part, and the paired median ratio of the second to the first."""
     n, length = SIZES[options.sizes[0]]
-    versions = variants(S, options, args)
+    versions, warmup = variants(S, options, args), warmup_updates(options, args)
     (first, _), (second, _) = versions.items()
     print(f"{'device':<6} {'size':<6} {'method':<8} {'version':<24} {'median s':>9} "
           + " ".join(f"{p:>14}" for p in PARTS) + f"  {second}/{first} (paired median), pairs {first} faster",
@@ -235,11 +259,11 @@ def paired_timing(S, options: Options, args, device: torch.device, obs_shape, ac
             setups[label] = method_setup(module, version_args, method, n, length, obs_shape, action_size, device)
             samplers[label] = module.ChunkSampler(replay, n, length, np.random.default_rng(args.seed), device,
                                                   setups[label][0].prefetch)
-            batches[label] = samplers[label].batches(options.updates + 1)
-        for i in range(options.updates + 1):  # round 0 warms both up (and refreshes D)
+            batches[label] = samplers[label].batches(options.updates + warmup)
+        for i in range(options.updates + warmup):  # the warm-up rounds (round 0 refreshes D)
             for label in (list(versions) if i % 2 else list(versions)[::-1]):
                 took, out = timed_update(versions[label][0], setups[label], batches[label], multitask, rng, device, i)
-                if i > 0:
+                if i >= warmup:
                     seconds[label].append(took)
                     for p in PARTS:
                         parts[label][p].append(out["timings"].get(p, 0.0))
@@ -247,6 +271,11 @@ def paired_timing(S, options: Options, args, device: torch.device, obs_shape, ac
             sampler.close()
         a, b = np.array(seconds[first]), np.array(seconds[second])  # (updates,) each
         for label in versions:
+            ROWS.append({"device": device.type, "size": options.sizes[0], "method": method, "version": label,
+                         "median_seconds": float(np.median(seconds[label])), "seconds": seconds[label],
+                         **{p: float(np.median(parts[label][p])) for p in PARTS}, "flags": run_flags(args),
+                         f"paired_{second}_over_{first}": float(np.median(b / a)), "pairs": len(a),
+                         f"pairs_{first}_faster": int(np.sum(b > a))})
             print(f"{device.type:<6} {options.sizes[0]:<6} {method:<8} {label:<24} {np.median(seconds[label]):>9.3f} "
                   + " ".join(f"{np.median(parts[label][p]):>14.3f}" for p in PARTS), flush=True)
         print(f"{'':<6} {'':<6} {method:<8} {'paired':<24} {f'{np.median(b / a):.3f}x':>9}  {np.sum(b > a)}/{len(a)} "
@@ -265,12 +294,30 @@ def main(S, options: Options, args) -> None:
                            f"(one of {', '.join(S.flag(n)[2:] for n in bools)})")
     if options.compare_to and not os.path.isfile(options.compare_to):
         raise S.UsageError(f"--compare-to {options.compare_to}: no such file")
+    if (options.ab_flag or "").replace("-", "_") == "cuda_graph":
+        S.check_args(dataclasses.replace(args, cuda_graph=True))  # --cuda-graph needs CUDA: one line if not
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
-    print(f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | torch "
-          f"{torch.__version__} | threads {torch.get_num_threads()}"
-          + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "")
-          + f" | precision {args.precision} | channels-last {args.channels_last}"
-          + "".join(f" | {d} bf16: {S.native_bf16(torch.device(d))[1]}" for d in devices), flush=True)
+    facts = (f"{time.strftime('%Y-%m-%d')} | machine: {platform.machine()} {cpu_name()} | {os.cpu_count()} CPUs | "
+             f"torch {torch.__version__} | threads {torch.get_num_threads()}"
+             + (f" | {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "")
+             + f" | precision {args.precision} | channels-last {args.channels_last}"
+             + "".join(f" | {d} bf16: {S.native_bf16(torch.device(d))[1]}" for d in devices))
+    print(facts, flush=True)
+    try:
+        run(S, options, args, devices)
+    finally:  # what was measured before a failure is kept too
+        if options.json:
+            with open(options.json, "w") as f:
+                json.dump({"facts": facts, "argv": sys.argv[1:], "rows": ROWS}, f, indent=1)
+
+
+def run_flags(args) -> str:
+    """The speed flags of a row (which precision, layout, graphs), as the command line spells them."""
+    return f"--precision {args.precision} --channels-last {args.channels_last} --cuda-graph " \
+           f"{getattr(args, 'cuda_graph', False)}"
+
+
+def run(S, options: Options, args, devices: list) -> None:
     for device_name in devices:  # check_args checked --device; `auto` times the CPU as well
         S.check_precision(args.precision, torch.device(device_name))
     state_shape, action_size = STATE_AND_ACTION[options.script]
@@ -284,7 +331,8 @@ def main(S, options: Options, args) -> None:
         return paired_timing(S, options, args, torch.device(devices[-1]), obs_shape, action_size, replay, multitask,
                              rng)
     if options.profile:
-        return profile_update(S, args, obs_shape, action_size, replay, multitask, rng, torch.device(devices[-1]))
+        return profile_update(S, options, args, obs_shape, action_size, replay, multitask, rng,
+                              torch.device(devices[-1]))
     print(f"{'device':<6} {'size':<6} {'n':>3} {'L':>3} {'method':<8} {'s/update':>9} {'vs dreamer':>10} "
           + " ".join(f"{p:>14}" for p in PARTS), flush=True)
     for device_name in devices:

@@ -201,3 +201,37 @@ def test_preset_runs_are_their_own_rows_beside_another_experiment(tmp_path):
     assert bad.returncode != 0 and "--beside" in bad.stderr and "no run folders" in bad.stderr
     assert report.method_order({"rrama@authors-code", "dreamer", "uniform@authors-code", "uniform"}) == [
         "dreamer", "uniform", "uniform@authors-code", "rrama@authors-code"]
+
+
+def test_reference_table_and_band_by_hand(tmp_path):
+    """--reference: each run's eval return at its logged step nearest a checkpoint (within 10%) against the
+    reference's mean ± 2 std; a task with no reference curve gets no rows; a reference of another key is refused."""
+    exp = tmp_path / "results" / "pixels"
+    for seed, (at_100k, at_200k) in enumerate([(300.0, 700.0), (100.0, 760.0), (480.0, 0.0)], 1):
+        run = exp / f"stand__dreamer__s{seed}"
+        run.mkdir(parents=True)
+        (run / "args.json").write_text(json.dumps({"env_id": "dmc/walker-stand", "method": "dreamer", "seed": seed}))
+        rows = [{"step": 100_000, "eval/episodic_return": at_100k}, {"step": 200_000, "eval/episodic_return": at_200k}]
+        if seed == 3:  # stopped early: its second evaluation is at 150k, over 10% from 205k, and is not used
+            rows[1]["step"] = 150_000
+        (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    write_run(exp, "other__dreamer__s1", [5.0], {"env_id": "dmc/hop", "method": "dreamer", "seed": 1})
+    with open(exp / "other__dreamer__s1" / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({"step": 100, "eval/episodic_return": 5.0}) + "\n")
+    reference = tmp_path / "reference.json"
+    reference.write_text(json.dumps({
+        "name": "Dreamer v1", "key": "eval/episodic_return", "checkpoints": [105_000, 205_000], "source": "a test",
+        "tasks": {"walker-stand": {"steps": [5000, 105_000, 205_000], "mean": [0.0, 315.0, 723.0],
+                                   "std": [1.0, 70.0, 90.0], "seeds": [5, 5, 5]}}}))
+    run_script("report.py", str(exp), "--key", "eval/episodic_return", "--reference", str(reference), "--reps", "50")
+    text = (exp / "report.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| stand |") and "Dreamer" in line and "," in line]
+    # 105k: 300, 100, 480 -> mean 293.3, population std sqrt((6.67² + 193.33² + 186.67²) / 3) = sqrt(24088.9) = 155.2;
+    # within 315 ± 140 = [175, 455]: 300 only. 205k: 700 and 760 (at 200k) -> 730.0 ± 30.0, both in [543, 903]
+    assert rows == ["| stand | Dreamer | 105,000 | 293.3 ± 155.2 (3) | 100,000 | 315.0 ± 70.0 (5) | 1 of 3 |",
+                    "| stand | Dreamer | 205,000 | 730.0 ± 30.0 (2) | 200,000 | 723.0 ± 90.0 (5) | 2 of 2 |"]
+    assert "| other |" not in text.split("## Against Dreamer v1")[1].split("## Runs")[0]
+    assert (exp / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    wrong = run_script("report.py", str(exp), "--reference", str(reference), check=False)  # the default key
+    assert wrong.returncode != 0 and "give --key eval/episodic_return" in wrong.stderr
+    assert len(wrong.stderr.strip().splitlines()) == 1
