@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
 # One planned GPU session (issue 39: CUDA graphs), in stages, each writing its output under $OUT. Run by the device
 # tool from the repository root, with the packages its image lacks carried in .gpu/ (not committed; how to make it:
-# docs/benchmarks.md, "A GPU session"):
-#   run(command="bash benchmarks/gpu_session.sh check graphs", carry=[".gpu"])      # about 4 min
-#   run(command="bash benchmarks/gpu_session.sh precision profile", carry=[".gpu"]) # about 4 min
+# docs/benchmarks.md, section "`--cuda-graph`: written and tested on the CPU"):
+#   run(command="bash benchmarks/gpu_session.sh check graphs", carry=[".gpu"])      # estimated 4 min
+#   run(command="bash benchmarks/gpu_session.sh precision profile", carry=[".gpu"]) # estimated 4 min
 # Stages:
 #   check      the CUDA equivalence test: graphed updates against eager ones (tests/test_cuda_graph.py)
 #   graphs     --cuda-graph on/off, paired, every method, fp32: paper size (pixels, 50x50) and state mode (16x50)
 #   precision  the same with --precision bf16, and fp32 with TF32 matrix products (cuBLAS override)
 #   profile    one paper-size Dreamer update's operators, eager and graphed (kernel time against wall time)
 #   e2e-eager, e2e-graphs   a real walker-walk run from pixels (20k env steps): env steps/s end to end (EGL)
+#   share      1, 2 and 4 state-mode runs and 2 pixel runs side by side: env steps/s in all, GPU memory per run
 #   pixels-start, pixels-poll, pixels-pack   issue 40's walker-stand seeds (sweeps/pixels_dreamer.toml) across calls
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
@@ -50,6 +51,21 @@ for stage in "$@"; do
       timeout 560 python3 rama_dreamer.py --env-id dmc/walker-walk --total-steps 20000 --eval-every 20000 \
         --plain-log --run-dir /tmp/e2e --exp-name "$stage" $flag 2>&1 | tee "$OUT/$stage.txt" | tail -8
       cp /tmp/e2e/*"$stage"*/metrics.jsonl "$OUT/$stage-metrics.jsonl" ;;  # the episodes stay there (GBs)
+    share)  # issue 39, item 5: N runs side by side on the one GPU: aggregate env steps/s and GPU memory per run
+      for spec in "state 1" "state 2" "state 4" "pixels 2"; do
+        set -- $spec; obs=$1; n=$2; start=$(date +%s.%N); pids=""
+        for i in $(seq 1 "$n"); do
+          python3 rama_dreamer.py --env-id dmc/walker-walk --obs-type "$obs" $([ "$obs" = state ] && echo \
+            --batch-size 16 --mlp-units 200) --total-steps 10000 --eval-every 10000 --plain-log --seed "$i" \
+            --run-dir /tmp/share --exp-name "share_${obs}_${n}" ${GRAPHS:---cuda-graph} \
+            > "/tmp/share_${obs}_${n}_$i.log" 2>&1 &
+          pids="$pids $!"
+        done
+        sleep 20; mem=$(nvidia-smi --query-compute-apps=used_memory --format=csv,noheader,nounits | paste -sd+)
+        wait $pids; took=$(python3 -c "import time; print(f'{time.time() - $start:.1f}')")
+        echo "$obs x$n: ${took} s wall, $(python3 -c "print(f'{$n * 10000 / $took:.0f}')") env steps/s in all," \
+          "GPU MiB per process at 20 s: $mem" | tee -a "$OUT/share.txt"
+      done ;;
     pixels-start)  # issue 40: the walker-stand seeds side by side, detached; they run while later calls hold the GPU
       setsid nohup python3 sweep.py sweeps/pixels_dreamer.toml --workers 3 --only "walker_stand__*" \
         > /tmp/pixels.log 2>&1 < /dev/null &
@@ -65,7 +81,7 @@ for stage in "$@"; do
       done
       tar czf "$OUT/pixels_dreamer.tgz" -C "$OUT" pixels_dreamer && ls -la "$OUT/pixels_dreamer"/* ;;
     *) echo "unknown stage $stage (check, graphs, precision, profile, e2e-eager, e2e-graphs, pixels-start," \
-            "pixels-poll, pixels-pack)" ;;
+            "pixels-poll, pixels-pack, share)" ;;
   esac
 done
 echo "=== done ($(date -u +%T))"
