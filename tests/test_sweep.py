@@ -4,6 +4,7 @@ Both runs of the grid resume a killed run, and a second call skips the done runs
 import glob
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -328,3 +329,11 @@ def test_ray_sweep_retries_a_killed_run_on_a_local_instance(tmp_path):
         assert json.load(f)["prior_dirs"] == [os.path.dirname(inner[0])]
     # a second call finds both done and starts no Ray instance
     assert "2 done already, 0 to run" in sweep_cli(tmp_path, spec, "--ray-address", "local").stdout
+
+
+@pytest.mark.parametrize("spec", sorted(glob.glob(os.path.join(ROOT, "sweeps", "*.toml"))), ids=os.path.basename)
+def test_every_committed_spec_expands(spec):
+    """Each spec under sweeps/ parses and passes sweep.py's checks (priors, filters, scripts): its dry run lists runs."""
+    proc = run_script("sweep.py", spec, "--dry-run")
+    runs = [line for line in proc.stdout.splitlines() if re.match(r"\S+__s\d+ \[(new|done|resume)", line)]
+    assert runs and all("rama_" in line for line in runs if "[new]" in line)  # done runs print no command
