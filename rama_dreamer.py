@@ -1381,13 +1381,15 @@ def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: dict, 
 class GraphedUpdate:
     """--cuda-graph: `update` captured as CUDA graphs and replayed, one launch instead of ~1,000. A graph has fixed
     shapes: one per kind of update (its tensors' shapes; and mixed or not where that decides the model step). The
-    first `warmup` updates of a kind run eagerly on a side stream, as a capture needs (cuBLAS and the allocator set
-    up). Each replay first copies x and the plan into the graph's static tensors (the memory-mode pool only after a
-    refresh made a new one). A capture that fails prints one line and leaves the run eager."""
+    first `warmup` updates of a kind run eagerly on a side stream, as a capture needs (cuBLAS, the allocator and the
+    optimisers' state set up). Each replay first copies x and the plan into static tensors that all graphs share (the
+    memory-mode pool only after a refresh made a new one). A capture that fails prints one line; the run goes on
+    eagerly."""
 
     def __init__(self, agent: Agent, addressing: Optional[Addressing], args: Args, warmup: int = 3):
         self.agent, self.addressing, self.args, self.warmup = agent, addressing, args, warmup
         self.graphs, self.seen, self.failed, self.stream, self.mempool = {}, {}, False, None, None
+        self.static = {}  # (name, shape) -> [the graphs' input tensor, the tensor last copied into it]
 
     def __call__(self, x: dict, plan: dict) -> dict:
         inputs = {f"x.{k}": v for k, v in x.items()}  # name -> tensor: everything the graph reads
@@ -1400,20 +1402,20 @@ class GraphedUpdate:
             self.seen[key] = self.seen.get(key, 0) + 1
             return self.on_side_stream(lambda: update(self.agent, self.addressing, x, plan, self.args))
         if key not in self.graphs:
-            try:  # a larger memory-mode pool retires the graphs of the smaller one
-                pool_rows = lambda k: dict(k[0]).get("pool_embed")  # noqa: E731
-                self.graphs = {k: g for k, g in self.graphs.items() if pool_rows(k) == pool_rows(key)}
-                self.graphs[key] = self.capture(inputs, plan)
-            except Exception as e:  # the run goes on, eagerly
+            try:
+                self.graphs[key] = self.capture(key, inputs, plan)
+            except Exception as e:
                 self.failed = True
+                self.recover()
                 print(f"--cuda-graph: capture failed, updates run eagerly ({type(e).__name__}: {str(e)[:160]})",
                       flush=True)
                 return self(x, plan)
         graph, t0 = self.graphs[key], time.perf_counter()
         for name, source in inputs.items():  # no input changes in place: one copied before holds the same values
-            if graph.copied.get(name) is not source:  # (the memory-mode pool: until the next refresh)
-                graph.static[name].copy_(source, non_blocking=True)
-                graph.copied[name] = source
+            static = self.static[(name, tuple(source.shape))]
+            if static[1] is not source:  # (the memory-mode pool: until the next refresh)
+                static[0].copy_(source, non_blocking=True)
+                static[1] = source
         graph.replay()
         metrics = dict(zip(graph.metric_names, graph.metrics.clone().unbind()))
         timings = {"batch_sampling": 0.0, "graph_replay": time.perf_counter() - t0}
@@ -1423,9 +1425,17 @@ class GraphedUpdate:
         picks = (plan["pool_ids"], graph.picks.clone()) if plan.get("mixed") else None
         return {"metrics": metrics, "timings": timings, "picks": picks}
 
-    def capture(self, inputs: dict, plan: dict) -> types.SimpleNamespace:
-        """Record `update` on static copies of the inputs; the metrics it returns become one vector."""
-        static = {k: v.clone() for k, v in inputs.items()}
+    def capture(self, key: tuple, inputs: dict, plan: dict) -> types.SimpleNamespace:
+        """Record `update` on the static inputs; the metrics it returns become one vector. A larger memory-mode pool
+        retires the graphs of the smaller one, and the static tensors no graph reads any more."""
+        pool_rows = lambda k: dict(k[0]).get("pool_embed")  # noqa: E731
+        self.graphs = {k: g for k, g in self.graphs.items() if pool_rows(k) == pool_rows(key)}
+        wanted = {entry for k in [key, *self.graphs] for entry in k[0]}
+        self.static = {k: v for k, v in self.static.items() if k in wanted}
+        self.mempool = self.mempool if self.graphs else None  # a fresh pool once none is left in use
+        static = {}
+        for name, v in inputs.items():
+            static[name] = self.static.setdefault((name, tuple(v.shape)), [v.clone(), v])[0]
         x = {k[2:]: v for k, v in static.items() if k.startswith("x.")}
         static_plan = {k: plan[k] for k in ("mixed", "pool_ids") if k in plan}
         static_plan.update({k: v for k, v in static.items() if "." not in k})
@@ -1439,8 +1449,9 @@ class GraphedUpdate:
             return list(out["metrics"]), torch.stack([v.detach().float() for v in out["metrics"].values()]), picks
 
         replay, (names, vector, picks) = self.record(recorded)  # vector: (K,) the K metrics
-        return types.SimpleNamespace(static=static, copied={}, replay=replay, metric_names=names, metrics=vector,
-                                     picks=picks)
+        for opt in list(self.agent.optimizers().values()) + ([self.addressing.opt] if self.addressing else []):
+            opt.zero_grad(set_to_none=True)  # the gradients the capture left in the pool are no one's to read
+        return types.SimpleNamespace(replay=replay, metric_names=names, metrics=vector, picks=picks)
 
     def record(self, fn):
         """fn captured as a CUDA graph (its kernels are recorded, not run): (replay, fn's outputs as static tensors).
@@ -1452,6 +1463,15 @@ class GraphedUpdate:
         with torch.cuda.graph(graph, pool=self.mempool, stream=self.stream, capture_error_mode="thread_local"):
             outputs = fn()
         return graph.replay, outputs
+
+    def recover(self):
+        """What a failed capture leaves behind (torch ~2.11): the capture stream current and the generators marked as
+        capturing, so that the next eager draw would fail. Back to the default stream and to plain generator states."""
+        torch.cuda.set_stream(torch.cuda.default_stream())
+        generators = [torch.cuda.default_generators[torch.cuda.current_device()]]
+        for generator in generators + ([self.addressing.generator] if self.addressing else []):
+            generator.graphsafe_set_state(generator.clone_state())
+        torch.cuda.synchronize()
 
     def on_side_stream(self, fn):
         """An eager update on the capture's stream (ordered after and before the default stream's work)."""

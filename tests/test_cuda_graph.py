@@ -53,6 +53,9 @@ class CPUGraphedUpdate(rd.GraphedUpdate):
     def on_side_stream(self, fn):
         return fn()
 
+    def recover(self):  # nothing of CUDA's to put back
+        pass
+
     def record(self, fn):
         modules = [self.agent] + ([self.addressing.net] if self.addressing else [])
         opts = list(self.agent.optimizers().values()) + ([self.addressing.opt] if self.addressing else [])
@@ -158,3 +161,17 @@ def test_cuda_graphs_match_eager_updates(name):
     graphed = run_updates(args, "cuda", rd.GraphedUpdate)
     assert not graphed[3].failed and graphed[3].graphs
     check_same(eager, graphed, rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_a_failed_cuda_capture_leaves_the_run_eager(capsys):
+    """A host sync inside the capture (here an .item()) fails it: one line, then eager updates equal to an eager
+    run's, so the stream and the generators were put back."""
+    class Syncing(rd.GraphedUpdate):
+        def record(self, fn):
+            return super().record(lambda: (fn(), torch.ones(1, device="cuda").item())[0])
+
+    args = rd.resolve_defaults(rd.Args(**{**SMALL, "method": "rrama", "cuda_graph": True, "device": "cuda"}))
+    eager, graphed = run_updates(args, "cuda", None), run_updates(args, "cuda", Syncing)
+    check_same(eager, graphed, rtol=1e-3, atol=1e-4)
+    assert graphed[3].failed and capsys.readouterr().out.count("--cuda-graph: capture failed") == 1
