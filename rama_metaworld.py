@@ -159,6 +159,8 @@ class Args:
     """epsilon of every Adam optimiser (Dreamer v1's 1e-4; torch's default is 1e-8)"""
     imagine_after_model_step: bool = False
     """step the world model before imagining (off: Dreamer v1 computes all three losses with the same parameters)"""
+    init: Literal["keras", "torch"] = "keras"
+    """weight initialisation: Dreamer v1's (Keras': Glorot-uniform, zero biases, orthogonal GRU) or torch's defaults"""
 
     # Actor-critic
     actor_lr: float = 8e-5
@@ -179,6 +181,8 @@ class Args:
     """the actor's minimal std"""
     actor_mean_scale: float = 5.0
     """the actor's pre-tanh mean is squashed to [-scale, scale]"""
+    eval_action: Literal["sample-mode", "mean"] = "sample-mode"
+    """evaluation's action: Dreamer v1's (the most likely of 100 samples) or the tanh of the Gaussian mean"""
 
     # Replay
     batch_size: int = 50
@@ -349,7 +353,8 @@ RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture
 ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": None, "address_weight_decay": 0.0,
                "address_candidates_mode": "memory", "address_logit_scale": 1.0, "address_oversample_ends": False,
                "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
-               "addressed_wm_rule": "rows", "cuda_graph": False}
+               "addressed_wm_rule": "rows", "cuda_graph": False,
+               "init": "torch", "eval_action": "mean"}
 # --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
 # era) where it departs from the paper's text; README, deviations 16-23, names the file and line of each value
 PRESETS = {"authors-code": dict(
@@ -925,6 +930,29 @@ def set_speed_options(module: nn.Module, precision: str, channels_last: bool) ->
     return module
 
 
+def init_weights(module: nn.Module, scheme: str) -> nn.Module:
+    """--init keras: Dreamer v1's initialisation (and the authors' code's: both Keras' defaults): Glorot-uniform
+    weights, zero biases, orthogonal recurrent GRU weights. The RSSM's posterior layer, split in two here, gets the
+    bound of v1's one layer over [h, e]. --init torch leaves torch's defaults (runs before 2026-11-24)."""
+    if scheme == "torch":
+        return module
+    for m in module.modules():
+        if isinstance(m, (nn.Linear, nn.Conv2d, nn.ConvTranspose2d)):
+            nn.init.xavier_uniform_(m.weight)  # uniform, bound sqrt(6 / (fan_in + fan_out))
+        for name, param in m.named_parameters(recurse=False):
+            if name.startswith("bias"):
+                nn.init.zeros_(param)
+            elif isinstance(m, (nn.GRU, nn.GRUCell)):  # (3H, in) input weights, (3H, H) recurrent ones
+                (nn.init.orthogonal_ if name.startswith("weight_hh") else nn.init.xavier_uniform_)(param)
+    for m in module.modules():  # after the loop above, which visits the RSSM before its layers
+        if isinstance(m, RSSM):
+            fan_in = m.obs_deter.in_features + m.obs_embed.in_features
+            bound = np.sqrt(6.0 / (fan_in + m.obs_deter.out_features))
+            for layer in (m.obs_deter, m.obs_embed):
+                nn.init.uniform_(layer.weight, -bound, bound)
+    return module
+
+
 class RSSM(nn.Module):
     """Recurrent state-space model: prior p(z_t | h_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t); posterior
     q(z_t | h_t, e_t), e_t the obs embedding. A state is a dict: mean, std, stoch (B, S) and deter (B, D)."""
@@ -1017,10 +1045,17 @@ class Actor(nn.Module):
     def forward(self, feat):
         return tanh_normal(self.net(feat), self.init_std, self.min_std, self.mean_scale)
 
-    def mode(self, feat):
-        """tanh of the Gaussian mean: the action used in evaluation."""
-        mean = self.net(feat).chunk(2, -1)[0]
-        return torch.tanh(self.mean_scale * torch.tanh(mean / self.mean_scale))
+    def mode(self, feat, rule: str = "sample-mode", samples: int = 100):
+        """The action used in evaluation, feat (N, F) -> (N, A): Dreamer v1's mode estimate, the most likely of 100
+        samples (--eval-action sample-mode: with the initial std of 5 that is a nearly saturated action), or the tanh
+        of the Gaussian mean (--eval-action mean)."""
+        if rule == "mean":
+            mean = self.net(feat).chunk(2, -1)[0]
+            return torch.tanh(self.mean_scale * torch.tanh(mean / self.mean_scale))
+        dist = self(feat)
+        sample = dist.sample((samples,))  # (S, N, A)
+        best = dist.log_prob(sample).argmax(0)  # (N,)
+        return sample[best, torch.arange(len(best), device=best.device)]
 
 
 def tanh_normal(out, init_std, min_std, mean_scale):
@@ -1169,7 +1204,7 @@ class Agent(nn.Module):
         self.actor = Actor(feat, action_size, args.mlp_units, args.actor_init_std, args.actor_min_std,
                            args.actor_mean_scale)
         self.value = MLP(feat, args.mlp_units, 3, 1)
-        set_speed_options(self, args.precision, args.channels_last)
+        set_speed_options(init_weights(self, args.init), args.precision, args.channels_last)
         # capturable (--cuda-graph): Adam keeps its step counts on the device, so that a CUDA graph can hold its step
         adam = functools.partial(torch.optim.Adam, eps=args.adam_eps, capturable=args.cuda_graph)
         self.model_opt = adam(self.wm.parameters(), lr=args.model_lr)
@@ -1303,7 +1338,7 @@ class Addressing:
     def __init__(self, obs_shape, action_size: int, args: Args, device):
         self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth,
                               args.address_layer_norm, args.address_reward_input)
-        self.net = set_speed_options(self.net, args.precision, args.channels_last).to(device)
+        self.net = set_speed_options(init_weights(self.net, args.init), args.precision, args.channels_last).to(device)
         # decoupled weight decay: torch scales it by lr, so wd / lr gives the authors' θ ← (1 − wd)·θ per step
         self.opt = torch.optim.Adam(self.net.parameters(), lr=args.address_lr,
                                     eps=args.address_adam_eps or args.adam_eps, decoupled_weight_decay=True,
@@ -1627,8 +1662,8 @@ def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressin
 class Policy:
     """Acts online in N envs at once: keeps the RSSM posteriors of the current episodes and picks actions from them."""
 
-    def __init__(self, agent: Agent, device):
-        self.agent, self.device = agent, device
+    def __init__(self, agent: Agent, device, eval_action: str = "sample-mode"):
+        self.agent, self.device, self.eval_action = agent, device, eval_action
 
     def reset(self, num_envs: int = 1):
         self.state, self.action = None, torch.zeros(num_envs, self.agent.actor.action_size, device=self.device)
@@ -1642,7 +1677,8 @@ class Policy:
         state = self.state if self.state is not None else wm.rssm.initial(len(obs), self.device)
         self.state = wm.rssm.obs_step(wm.rssm.img_step(state, self.action), wm.rssm.obs_embed(embed))
         feat = wm.rssm.feat(self.state)
-        action = self.agent.actor.mode(feat) if explore_noise is None else self.agent.actor(feat).sample()
+        action = self.agent.actor.mode(feat, self.eval_action) if explore_noise is None else \
+            self.agent.actor(feat).sample()
         action = action.cpu().numpy()  # (N, A)
         if explore_noise:
             action = np.clip(action + rng.normal(0.0, explore_noise, action.shape), -1.0, 1.0)
@@ -1987,7 +2023,7 @@ def open_task(task: Task, checkpoint: Optional[dict]) -> Task:
         args, task.env_id, task.seed + 10_000, 1)
     task.agent = Agent(task.envs.single_observation_space.shape, task.envs.single_action_space.shape[0],
                        args).to(task.device)
-    task.policy = Policy(task.agent, task.device)
+    task.policy = Policy(task.agent, task.device, args.eval_action)
     task.step = GraphedUpdate(task.agent, task.addressing, args) if args.cuda_graph else functools.partial(
         update, task.agent, task.addressing, args=args)  # (x, plan) -> the update's output
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the

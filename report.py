@@ -294,12 +294,15 @@ def diagnostics_table(runs: list, tasks: list, methods: list, decimals: int) -> 
 
 
 def reference_table(runs: list, tasks: list, methods: list, reference: dict, decimals: int) -> list:
-    """Each task's runs at the reference's checkpoints: their values (the logged step nearest each checkpoint, within
-    10% of it) against the reference's mean ± std, and how many seeds lie within its mean ± 2 std."""
+    """Each task's runs at the reference's checkpoints against the reference's mean ± std, and how many seeds lie
+    within its mean ± 2 std. A run's value at a checkpoint c: the mean of its values logged in (c - window, c] when
+    the reference is binned so (its "window"), else its value at the logged step nearest c (within 10% of it)."""
+    window = reference.get("window")
+    how = (f"mean of its values logged in the {window:,.0f} env steps up to each checkpoint, as the reference's are"
+           if window else "value at its logged step nearest each checkpoint (within 10%)")
     lines = ["", f"## Against {reference['name']}", "",
-             f"Each run's `{reference['key']}` at its logged step nearest each checkpoint (within 10%), against "
-             f"{reference['name']}'s mean ± std over its seeds ({reference['source']}). A run within the reference's "
-             f"mean ± 2 std is consistent with it.", "",
+             f"Each run's `{reference['key']}`: the {how}; against {reference['name']}'s mean ± std over its seeds "
+             f"({reference['source']}). A run within the reference's mean ± 2 std is consistent with it.", "",
              "| task | method | checkpoint | runs: mean ± std (seeds) | steps used | reference: mean ± std (seeds) | "
              "runs within ± 2 std |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for task in tasks:
@@ -309,17 +312,19 @@ def reference_table(runs: list, tasks: list, methods: list, reference: dict, dec
             for checkpoint in reference["checkpoints"]:
                 i = ref["steps"].index(checkpoint)
                 low, high = ref["mean"][i] - 2 * ref["std"][i], ref["mean"][i] + 2 * ref["std"][i]
-                picked = []  # (step, value) of each run near the checkpoint
+                picked, used = [], set()  # each run's value at the checkpoint; the steps it came from
                 for r in (r for r in runs if r["task"] == task and r["method"] == method):
-                    j = int(np.argmin(np.abs(r["steps"] - checkpoint)))
-                    if abs(r["steps"][j] - checkpoint) <= 0.1 * checkpoint:
-                        picked.append((int(r["steps"][j]), r["values"][j]))
+                    near = (r["steps"] > checkpoint - window) & (r["steps"] <= checkpoint) if window else \
+                        np.arange(len(r["steps"])) == np.argmin(np.abs(r["steps"] - checkpoint))
+                    if near.any() and (window or abs(r["steps"][near][0] - checkpoint) <= 0.1 * checkpoint):
+                        picked.append(r["values"][near].mean())
+                        used.update(int(s) for s in r["steps"][near])
                 if not picked:
                     continue
-                values = np.array([v for _, v in picked])
+                values = np.array(picked)
                 lines.append(f"| {task} | {method_name(method)} | {checkpoint:,} | {fmt(values.mean(), decimals)} ± "
                              f"{fmt(values.std(), decimals)} ({len(values)}) | "
-                             f"{', '.join(f'{s:,}' for s in sorted({s for s, _ in picked}))} | "
+                             f"{', '.join(f'{s:,}' for s in sorted(used))} | "
                              f"{fmt(ref['mean'][i], decimals)} ± {fmt(ref['std'][i], decimals)} ({ref['seeds'][i]}) | "
                              f"{int(((values >= low) & (values <= high)).sum())} of {len(values)} |")
     return lines

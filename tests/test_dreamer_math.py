@@ -221,9 +221,56 @@ def test_resume_of_a_run_saved_by_an_older_version_is_refused(tmp_path):
     (tmp_path / "args.json").write_text(json.dumps(saved))
     args, _ = rd.resolve_run(rd.Args(resume=str(tmp_path)), {"resume"})
     assert args.address_x_net == "shared" and rd.ADDED_FLAGS["address_x_net"] == "shared"
-    # every flag added since (the authors' configuration's) resumes as the one behaviour there was: its default
-    assert all(getattr(rd.Args(), name) == value for name, value in rd.ADDED_FLAGS.items())
+    # every flag added since resumes as the one behaviour there was: the authors' configuration's flags their
+    # defaults; Dreamer v1's initialisation and evaluation action, made the defaults later, torch's and the mean
+    changed = {"init": ("keras", "torch"), "eval_action": ("sample-mode", "mean")}
+    assert all(getattr(rd.Args(), name) == value for name, value in rd.ADDED_FLAGS.items() if name not in changed)
+    assert all((getattr(rd.Args(), name), rd.ADDED_FLAGS[name]) == pair for name, pair in changed.items())
+    for name in changed:
+        del saved[name]
+    (tmp_path / "args.json").write_text(json.dumps(saved))
+    args, _ = rd.resolve_run(rd.Args(resume=str(tmp_path)), {"resume"})
+    assert (args.init, args.eval_action) == ("torch", "mean")
     del saved["obs_std"]  # an args.json written before the flag existed
     (tmp_path / "args.json").write_text(json.dumps(saved))
     with pytest.raises(rd.UsageError, match=r"args.json: saved by an older version .*--obs-std"):
         rd.resolve_run(rd.Args(resume=str(tmp_path)), {"resume"})
+
+
+def test_keras_init_is_dreamer_v1s():
+    """--init keras (the default): Glorot-uniform weights (bound sqrt(6 / (fan_in + fan_out))), zero biases,
+    orthogonal recurrent GRU weights, and v1's one bound over [h, e] for the split posterior layer; --init torch keeps
+    torch's defaults (non-zero biases)."""
+    args = rd.resolve_defaults(rd.Args(obs_type="state", deter_size=200, stoch_size=30, hidden_size=200,
+                                       mlp_units=400))
+    torch.manual_seed(0)
+    agent = rd.Agent((24,), 6, args)
+    layers = [m for m in agent.modules() if isinstance(m, torch.nn.Linear) and m.weight.shape == (400, 400)]
+    assert len(layers) >= 6  # the hidden layers of the reward, value and actor MLPs
+    for layer in layers:  # 400 x 400: bound sqrt(6 / 800) = 0.0866, std of U(-b, b) = b / sqrt(3) = 0.05
+        assert layer.weight.abs().max() <= math.sqrt(6 / 800) + 1e-7
+        assert layer.weight.std().item() == pytest.approx(math.sqrt(6 / 800) / math.sqrt(3), rel=0.02)
+        assert torch.all(layer.bias == 0)
+    gru = agent.wm.rssm.gru  # weight_hh (3H, H) with orthonormal columns
+    gram = gru.weight_hh.T @ gru.weight_hh
+    assert torch.allclose(gram, torch.eye(200), atol=1e-5) and torch.all(gru.bias_hh == 0)
+    split = max(agent.wm.rssm.obs_deter.weight.abs().max(), agent.wm.rssm.obs_embed.weight.abs().max())
+    bound = math.sqrt(6 / (200 + agent.wm.encoder.embed_size + 200))  # v1: Dense(h ++ e -> 200)
+    assert bound * 0.95 < split <= bound
+    torch_init = rd.Agent((24,), 6, dataclasses.replace(args, init="torch"))
+    assert any((m.bias != 0).any() for m in torch_init.modules() if isinstance(m, torch.nn.Linear) and
+               m.bias is not None)
+
+
+def test_eval_action_is_v1s_sampled_mode():
+    """Dreamer v1's evaluation action: the most likely of 100 samples of the tanh-normal. With a small std it is the
+    tanh of the mean; with the initial std of 5 the density peaks near ±1, so it saturates where the mean rule does
+    not."""
+    torch.manual_seed(0)
+    actor = rd.Actor(8, 2, 16, init_std=5.0)
+    feat = torch.randn(256, 8)
+    sampled, mean = actor.mode(feat), actor.mode(feat, "mean")
+    assert sampled.shape == mean.shape == (256, 2)
+    assert sampled.abs().mean() > 0.95 and mean.abs().mean() < 0.5
+    narrow = rd.Actor(8, 2, 16, init_std=1e-3, min_std=1e-4)
+    assert torch.allclose(narrow.mode(feat), narrow.mode(feat, "mean"), atol=0.02)

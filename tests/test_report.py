@@ -235,3 +235,27 @@ def test_reference_table_and_band_by_hand(tmp_path):
     wrong = run_script("report.py", str(exp), "--reference", str(reference), check=False)  # the default key
     assert wrong.returncode != 0 and "give --key eval/episodic_return" in wrong.stderr
     assert len(wrong.stderr.strip().splitlines()) == 1
+
+
+def test_reference_table_with_a_binned_reference(tmp_path):
+    """A reference binned over windows ("window": Dreamer v1's scores are means over the 100k env steps up to each
+    step): each run is averaged over its evaluations in the same window before the seeds are."""
+    exp = tmp_path / "results" / "pixels"
+    for seed, evals in enumerate([[100.0, 200.0, 300.0, 400.0, 500.0], [50.0, 50.0, 50.0, 50.0, 300.0]], 1):
+        run = exp / f"stand__dreamer__s{seed}"
+        run.mkdir(parents=True)
+        (run / "args.json").write_text(json.dumps({"env_id": "dmc/walker-stand", "method": "dreamer", "seed": seed}))
+        rows = [{"step": 20_000 * (i + 1), "eval/episodic_return": v} for i, v in enumerate(evals)]  # 20k..100k
+        (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    reference = tmp_path / "reference.json"
+    reference.write_text(json.dumps({
+        "name": "Dreamer v1", "key": "eval/episodic_return", "checkpoints": [105_000, 205_000], "window": 100_000,
+        "source": "a test", "tasks": {"walker-stand": {"steps": [5000, 105_000, 205_000], "mean": [0.0, 315.0, 723.0],
+                                                       "std": [1.0, 70.0, 90.0], "seeds": [5, 5, 5]}}}))
+    run_script("report.py", str(exp), "--key", "eval/episodic_return", "--reference", str(reference), "--reps", "50")
+    text = (exp / "report.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| stand |") and "Dreamer" in line and "," in line]
+    # seed 1: (100 + 200 + 300 + 400 + 500) / 5 = 300, in [175, 455]; seed 2: 500 / 5 = 100, not: mean 200 ± 100
+    assert rows == ["| stand | Dreamer | 105,000 | 200.0 ± 100.0 (2) | 20,000, 40,000, 60,000, 80,000, 100,000 | "
+                    "315.0 ± 70.0 (5) | 1 of 2 |"]  # no evaluation in (105k, 205k]: no row
+    assert "in the 100,000 env steps up to each checkpoint" in text

@@ -1,6 +1,8 @@
 """Dreamer v1's published evaluation curves as a reference for this project's pixel runs: mean and standard deviation
 over the original's seeds at each step it logged, from danijar/dreamer's `scores/dreamer.json` (5 seeds per task,
-action repeat 2, 64x64 pixels, evaluation return), for the tasks of sweeps/pixels_dreamer.toml.
+action repeat 2, 64x64 pixels, evaluation return), for the tasks of sweeps/pixels_dreamer.toml. The file's values
+are binned: each is a seed's mean over the evaluations of the 100k env steps up to its step (v1 evaluates one
+episode every 10k steps), so report.py averages a run's evaluations over the same windows.
 
     git clone https://github.com/danijar/dreamer /tmp/dreamer   # the file is in its repository, scores/dreamer.json
     python tools/dreamer_v1_reference.py /tmp/dreamer/scores/dreamer.json   # -> results/pixels_dreamer/reference.json
@@ -32,9 +34,14 @@ def main():
         values = [[r["ys"][r["xs"].index(s)] for r in runs if s in r["xs"]] for s in steps]
         tasks[ours] = {"steps": steps, "mean": [round(float(np.mean(v)), 1) for v in values],
                        "std": [round(float(np.std(v)), 1) for v in values], "seeds": [len(v) for v in values]}
+    # the file's steps (5k, 105k, 205k, ...) are the bin edges of danijar/dreamer's plotting.py (`binning`, bins of
+    # 100k): v1 evaluates one episode every 10k env steps from 5k, so each value past the first is a seed's mean over
+    # the ten evaluations in the 100k steps up to its step. "window" tells report.py to average a run's so too.
     reference = {"name": "Dreamer v1", "key": "eval/episodic_return", "checkpoints": [105_000, 205_000],
-                 "source": "danijar/dreamer scores/dreamer.json (commit 56d4d44): per step, the mean and the "
-                           "population standard deviation over the seeds that logged it", "tasks": tasks}
+                 "window": 100_000,
+                 "source": "danijar/dreamer scores/dreamer.json (commit 56d4d44): per step, each seed's mean "
+                           "evaluation return over the 100k env steps up to it, then the mean and the population "
+                           "standard deviation over the seeds", "tasks": tasks}
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(reference, f, indent=1)
