@@ -316,9 +316,10 @@ def check_args(args: Args) -> None:
                          f"steps); lower it or raise --time-limit")
     for env_id in task_list(args):
         make_env_spec(env_id)  # raises a UsageError naming --env-id
-    check_precision(args.precision, resolve_device(args.device))
-    if args.cuda_graph and resolve_device(args.device).type != "cuda":
-        raise UsageError(f"--cuda-graph needs a CUDA device (--device {args.device} is {resolve_device(args.device)})")
+    device = resolve_device(args.device)
+    check_precision(args.precision, device)
+    if args.cuda_graph and device.type != "cuda":
+        raise UsageError(f"--cuda-graph needs a CUDA device (--device {args.device} is {device})")
 
 
 def episode_agent_steps(args: Args) -> int:
@@ -1368,6 +1369,12 @@ def borrowed_reward_mask(args: Args, multitask: Replay, episode_ids, task_name: 
     return torch.tensor(same_task, dtype=torch.float32).to(device, non_blocking=True)
 
 
+def mixed_skips_model_step(args: Args) -> bool:
+    """The authors' `agent_only` (--no-wm-on-addressed --addressed-wm-rule batch): a mixed batch leaves the model as
+    it is, so a mixed and an unmixed update differ in more than their rows."""
+    return not args.wm_on_addressed and args.addressed_wm_rule == "batch"
+
+
 def keep_rows(args: Args) -> int:
     """β·n: the rows of a mixed batch that stay current-task chunks."""
     return int(round(args.current_fraction * args.batch_size))
@@ -1404,8 +1411,7 @@ def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: dict, 
         if not args.wm_on_addressed and args.addressed_wm_rule == "rows":
             model_mask = torch.cat([ones.new_ones(keep), ones - plan["mix"]])  # (n,)
         timings["batch_sampling"] += time.perf_counter() - t0
-    # the authors' `agent_only` (--addressed-wm-rule batch): a mixed batch leaves the model as it is
-    step_model = args.wm_on_addressed or args.addressed_wm_rule == "rows" or not plan.get("mixed")
+    step_model = not (mixed_skips_model_step(args) and plan.get("mixed"))
     out = train_step(agent, batch, args, reward_mask, model_mask, step_model)
     out["metrics"].update(metrics)
     out["timings"].update(timings)
@@ -1431,8 +1437,8 @@ class GraphedUpdate:
         for part in ("m_batch", "pool"):
             inputs.update({f"{part}.{k}": v for k, v in plan.get(part, {}).items()})
         inputs.update({k: v for k, v in plan.items() if isinstance(v, torch.Tensor)})
-        mixed_decides = not self.args.wm_on_addressed and self.args.addressed_wm_rule == "batch"
-        key = (tuple((k, tuple(v.shape)) for k, v in inputs.items()), mixed_decides and plan.get("mixed"))
+        key = (tuple((k, tuple(v.shape)) for k, v in inputs.items()), mixed_skips_model_step(self.args) and
+               plan.get("mixed"))
         if self.failed or (key not in self.graphs and self.seen.get(key, 0) < self.warmup):
             self.seen[key] = self.seen.get(key, 0) + 1
             return self.on_side_stream(lambda: update(self.agent, self.addressing, x, plan, self.args))

@@ -25,8 +25,8 @@ what was picked against what could have been, how peaked q is, and what the band
 The curves show, per task, one line per method. Each run's returns are averaged in --bins equal bins of
 environment steps; the line is the mean over seeds of those bin averages, and the band is ± one s.e.
 --reference adds a published curve (tools/dreamer_v1_reference.py writes Dreamer v1's): drawn as its mean ± std
-band, and a table of each run's value at the reference's checkpoints (its logged step nearest each, within 10%)
-against the reference's mean ± 2 std.
+band, and a table of each run's value at the reference's checkpoints (the mean over the reference's window up to
+each, or the logged step nearest each, within 10%) against the reference's mean ± 2 std.
 """
 import argparse
 import glob
@@ -306,8 +306,7 @@ def reference_table(runs: list, tasks: list, methods: list, reference: dict, dec
              "| task | method | checkpoint | runs: mean ± std (seeds) | steps used | reference: mean ± std (seeds) | "
              "runs within ± 2 std |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for task in tasks:
-        current = {r["current_task"] for r in runs if r["task"] == task}
-        ref = next((reference["tasks"][c] for c in current if c in reference["tasks"]), None)
+        ref = task_reference(runs, task, reference)
         for method in methods if ref else []:
             for checkpoint in reference["checkpoints"]:
                 i = ref["steps"].index(checkpoint)
@@ -328,6 +327,12 @@ def reference_table(runs: list, tasks: list, methods: list, reference: dict, dec
                              f"{fmt(ref['mean'][i], decimals)} ± {fmt(ref['std'][i], decimals)} ({ref['seeds'][i]}) | "
                              f"{int(((values >= low) & (values <= high)).sum())} of {len(values)} |")
     return lines
+
+
+def task_reference(runs: list, task: str, reference: dict = None):
+    """The reference's curve of a task (by the name its runs' episodes carry), or None."""
+    current = {r["current_task"] for r in runs if r["task"] == task}
+    return next((reference["tasks"][c] for c in current if c in reference["tasks"]), None) if reference else None
 
 
 def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, title: str, path: str,
@@ -359,8 +364,7 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
             ax.plot(centres[keep], mean[keep], color=colour, label=f"{method_name(method)} ({len(curves)})",
                     marker="." if keep.sum() < 20 else None)
             ax.fill_between(centres[keep], (mean - se)[keep], (mean + se)[keep], color=colour, alpha=0.2)
-        current = {r["current_task"] for r in runs if r["task"] == task}
-        ref = next((reference["tasks"][c] for c in current if c in reference["tasks"]), None) if reference else None
+        ref = task_reference(runs, task, reference)
         if ref:
             ref_steps, mean, std = (np.array(ref[k]) for k in ("steps", "mean", "std"))
             shown = ref_steps <= edges[-1] * 1.05  # the reference as far as the runs go

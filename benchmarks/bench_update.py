@@ -178,7 +178,8 @@ def timed_update(S, setup, batches, multitask, rng, device: torch.device, i: int
     return time.perf_counter() - t0, out
 
 
-def profile_update(S, options: Options, args, obs_shape, action_size: int, replay, multitask, rng, device: torch.device) -> None:
+def profile_update(S, options: Options, args, obs_shape, action_size: int, replay, multitask, rng,
+                   device: torch.device) -> None:
     """Where the time of one paper-size Dreamer update goes, operator by operator (after a warm-up update)."""
     from torch.profiler import ProfilerActivity, profile
 
