@@ -18,37 +18,47 @@ mkdir -p "$OUT"
 METHODS="dreamer uniform rrama rbrama vrama"
 BENCH="python3 benchmarks/bench_update.py --device cuda --no-collection --methods $METHODS"
 
-# set-up: Python packages from .gpu/wheels into /tmp/site; EGL libraries from .gpu/debs for MuJoCo's rendering
-python3 -m pip install -q --no-index --no-deps --target /tmp/site .gpu/wheels/*.whl 2>&1 | tail -2
-export PYTHONPATH=/tmp/site MUJOCO_GL=egl
-for f in .gpu/debs/*.deb; do dpkg -x "$f" / 2>/dev/null; done
-ldconfig 2>/dev/null
+# Every stage ends by a deadline: BUDGET seconds after the start (default 560, inside the device tool's 600 s per
+# call), so a slow stage leaves the later ones their time and $OUT always comes back with what was measured.
+T0=$(date +%s); BUDGET=${BUDGET:-560}
+left() { echo $((T0 + BUDGET - $(date +%s))); }
+cap() { local l; l=$(left); [ "$l" -lt "$1" ] && echo "$l" || echo "$1"; }  # a stage's own limit, or less if late
+
+# set-up (once per machine): Python packages from .gpu/wheels into /tmp/site; EGL libraries from .gpu/debs for MuJoCo
+export PYTHONPATH=/tmp/site MUJOCO_GL=egl PYTHONUNBUFFERED=1
+if [ ! -d /tmp/site/tyro ]; then
+  python3 -m pip install -q --no-index --no-deps --target /tmp/site .gpu/wheels/*.whl 2>&1 | tail -2
+  for f in .gpu/debs/*.deb; do dpkg -x "$f" / 2>/dev/null; done
+  ldconfig 2>/dev/null
+fi
 { date -u; nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv;
   python3 -c "import torch, tyro, gymnasium; print('torch', torch.__version__, torch.cuda.get_device_name())"
-  git log -1 --format='commit %H %s' 2>/dev/null || true; } 2>&1 | tee "$OUT/setup.txt"
+  git log -1 --format='commit %H %s' 2>/dev/null || true; } 2>&1 | tee -a "$OUT/setup.txt"
 
 for stage in "$@"; do
   echo "=== $stage ($(date -u +%T))"
   case "$stage" in
     check)
-      python3 -m pytest -q -p no:cacheprovider tests/test_cuda_graph.py 2>&1 | tee "$OUT/check.txt" | tail -15 ;;
+      timeout "$(cap 180)" python3 -m pytest -q -rA --tb=short -p no:cacheprovider tests/test_cuda_graph.py 2>&1 \
+        | tee "$OUT/check.txt" | tail -15 ;;
     graphs)
-      $BENCH --ab-flag cuda-graph --sizes paper --updates 20 --json "$OUT/graphs-paper-fp32.json" \
-        2>&1 | tee "$OUT/graphs-paper-fp32.txt"
-      $BENCH --ab-flag cuda-graph --sizes small --obs-type state --mlp-units 200 --updates 40 \
+      timeout "$(cap 170)" $BENCH --ab-flag cuda-graph --sizes paper --updates 20 \
+        --json "$OUT/graphs-paper-fp32.json" 2>&1 | tee "$OUT/graphs-paper-fp32.txt"
+      timeout "$(cap 90)" $BENCH --ab-flag cuda-graph --sizes small --obs-type state --mlp-units 200 --updates 40 \
         --json "$OUT/graphs-state-fp32.json" 2>&1 | tee "$OUT/graphs-state-fp32.txt" ;;
     precision)
-      $BENCH --ab-flag cuda-graph --sizes paper --updates 20 --precision bf16 --json "$OUT/graphs-paper-bf16.json" \
-        2>&1 | tee "$OUT/graphs-paper-bf16.txt"
-      TORCH_ALLOW_TF32_CUBLAS_OVERRIDE=1 $BENCH --ab-flag cuda-graph --sizes paper --updates 20 \
+      timeout "$(cap 120)" $BENCH --ab-flag cuda-graph --sizes paper --updates 10 --precision bf16 \
+        --json "$OUT/graphs-paper-bf16.json" 2>&1 | tee "$OUT/graphs-paper-bf16.txt"
+      TORCH_ALLOW_TF32_CUBLAS_OVERRIDE=1 timeout "$(cap 120)" $BENCH --ab-flag cuda-graph --sizes paper --updates 10 \
         --json "$OUT/graphs-paper-tf32.json" 2>&1 | tee "$OUT/graphs-paper-tf32.txt" ;;
     profile)
-      python3 benchmarks/bench_update.py --device cuda --profile 2>&1 | tee "$OUT/profile-eager.txt" | tail -30
-      python3 benchmarks/bench_update.py --device cuda --profile --cuda-graph 2>&1 | tee "$OUT/profile-graphs.txt" \
-        | tail -30 ;;
+      timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --profile --cuda-graph 2>&1 \
+        | tee "$OUT/profile-graphs.txt" | tail -30
+      timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --profile 2>&1 \
+        | tee "$OUT/profile-eager.txt" | tail -30 ;;
     e2e-eager|e2e-graphs)  # one per call: the eager run takes about 8 of a call's 10 minutes
       flag=$([ "$stage" = e2e-graphs ] && echo --cuda-graph || echo --no-cuda-graph)
-      timeout 560 python3 rama_dreamer.py --env-id dmc/walker-walk --total-steps 20000 --eval-every 20000 \
+      timeout "$(( $(left) - 10 ))" python3 rama_dreamer.py --env-id dmc/walker-walk --total-steps 20000 --eval-every 20000 \
         --plain-log --run-dir /tmp/e2e --exp-name "$stage" $flag 2>&1 | tee "$OUT/$stage.txt" | tail -8
       cp /tmp/e2e/*"$stage"*/metrics.jsonl "$OUT/$stage-metrics.jsonl" ;;  # the episodes stay there (GBs)
     share)  # issue 39, item 5: N runs side by side on the one GPU: aggregate env steps/s and GPU memory per run
@@ -66,20 +76,28 @@ for stage in "$@"; do
         echo "$obs x$n: ${took} s wall, $(python3 -c "print(f'{$n * 10000 / $took:.0f}')") env steps/s in all," \
           "GPU MiB per process at 20 s: $mem" | tee -a "$OUT/share.txt"
       done ;;
-    pixels-start)  # issue 40: the walker-stand seeds side by side, detached; they run while later calls hold the GPU
-      setsid nohup python3 sweep.py sweeps/pixels_dreamer.toml --workers 3 --only "walker_stand__*" \
-        > /tmp/pixels.log 2>&1 < /dev/null &
-      sleep 240; tail -n 3 runs/pixels_dreamer/*/log.txt ;;
-    pixels-poll)  # one call: about 9 minutes of the runs, then where they are
-      sleep 530; tail -n 2 runs/pixels_dreamer/*/log.txt; cat /tmp/pixels.log ;;
-    pixels-pack)  # every run's args.json, metrics.jsonl and its last open-loop prediction GIF, as results/ holds them
+    pixels-start)  # issue 40, detached: the runs go on while later calls hold the machine (within 30 s of each other)
+      # PIXEL_ONLY picks the runs, PIXEL_FLAGS adds flags to the spec's (e.g. --cuda-graph --precision bf16)
+      sed "s|^flags = \"\"\"|flags = \"\"\"${PIXEL_FLAGS:-} |" sweeps/pixels_dreamer.toml > /tmp/pixels.toml
+      grep -A1 '^flags = """' /tmp/pixels.toml | tee "$OUT/pixels-spec.txt"
+      set -f; setsid nohup python3 sweep.py /tmp/pixels.toml --workers "${PIXEL_WORKERS:-3}" --only ${PIXEL_ONLY:-walker_stand__*} \
+        > /tmp/pixels.log 2>&1 < /dev/null & set +f
+      sleep 5; cat /tmp/pixels.log ;;
+    pixels-poll)  # wait until 45 s of the call are left, printing where the runs are every 2 minutes
+      while [ "$(left)" -gt 45 ]; do
+        sleep "$(cap 120)"; echo "--- $(date -u +%T)"; for f in runs/pixels_dreamer/*/log.txt; do echo "$f: $(tail -n 1 "$f")"; done
+      done; cat /tmp/pixels.log ;;
+    pixels-pack)  # every run's args.json, metrics.jsonl, log tail and last open-loop GIF, as results/ holds them
       for run in runs/pixels_dreamer/*/; do
         name=$(basename "$run"); mkdir -p "$OUT/pixels_dreamer/$name"
         cp "$run"/*/args.json "$run"/*/metrics.jsonl "$OUT/pixels_dreamer/$name/" 2>/dev/null
+        tail -n 40 "$run/log.txt" > "$OUT/pixels_dreamer/$name/log_tail.txt" 2>/dev/null
         last=$(ls -t "$run"/*/videos/*openloop*.gif 2>/dev/null | head -1)
         [ -n "$last" ] && cp "$last" "$OUT/pixels_dreamer/$name/"
       done
-      tar czf "$OUT/pixels_dreamer.tgz" -C "$OUT" pixels_dreamer && ls -la "$OUT/pixels_dreamer"/* ;;
+      nvidia-smi > "$OUT/pixels_dreamer/nvidia-smi.txt" 2>&1
+      tar czf "$OUT/pixels_dreamer.tgz" -C "$OUT" pixels_dreamer && rm -rf "$OUT/pixels_dreamer" \
+        && tar tzvf "$OUT/pixels_dreamer.tgz" ;;
     *) echo "unknown stage $stage (check, graphs, precision, profile, e2e-eager, e2e-graphs, pixels-start," \
             "pixels-poll, pixels-pack, share)" ;;
   esac
