@@ -113,8 +113,9 @@ class Args:
     """sample (and pin) the next batch in a background thread while the current update trains"""
     num_envs: int = 1
     """environments collecting in parallel (subprocesses via gymnasium's AsyncVectorEnv when > 1)"""
-    cuda_graph: bool = False
-    """CUDA only: capture each update as CUDA graphs and replay them (GraphedUpdate; eager if a capture fails)"""
+    cuda_graph: Optional[bool] = None
+    """capture each update as CUDA graphs and replay them (GraphedUpdate; eager if a capture fails). None: on when
+    the device is CUDA (2.6-6x faster updates on an H100, the same math), off elsewhere; True on a CPU is refused"""
 
     # Environment
     action_repeat: int = 2
@@ -354,7 +355,7 @@ RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture
 ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": None, "address_weight_decay": 0.0,
                "address_candidates_mode": "memory", "address_logit_scale": 1.0, "address_oversample_ends": False,
                "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
-               "addressed_wm_rule": "rows", "cuda_graph": False,
+               "addressed_wm_rule": "rows", "cuda_graph": None,
                "init": "torch", "eval_action": "mean"}
 # --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
 # era) where it departs from the paper's text; README, deviations 16-23, names the file and line of each value
@@ -1933,8 +1934,9 @@ def resolve_run(args: Args, given: set):
             raise UsageError(f"saved by an older version of this script (no {', '.join(missing)}); resume it with that "
                              f"version")
         fields = {f.name: saved[f.name] for f in dataclasses.fields(Args)}  # flags since removed are dropped
-        resumed = dataclasses.replace(Args(**fields), resume=args.resume,
-                                      **{k: getattr(args, k) for k in given & set(RESUME_FLAGS)})
+        # --cuda-graph not given: the default of the device resumed on (graphs or not, the update's math is the same)
+        given_now = {"cuda_graph": None, **{k: getattr(args, k) for k in given & set(RESUME_FLAGS)}}
+        resumed = dataclasses.replace(Args(**fields), resume=args.resume, **given_now)
         check_args(resumed)
     except (ValueError, TypeError, AttributeError, UsageError) as e:  # JSONDecodeError is a ValueError
         raise UsageError(f"{args_path}: {e}") from None
@@ -2243,6 +2245,8 @@ def main(args: Args, given: frozenset = frozenset()):
     check_args(args)
     args, run_path = resolve_run(args, set(given))
     device = resolve_device(args.device)
+    if args.cuda_graph is None:  # the default: CUDA graphs wherever there is CUDA (saved so in args.json)
+        args = dataclasses.replace(args, cuda_graph=device.type == "cuda")
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)

@@ -274,7 +274,8 @@ def paired_timing(S, options: Options, args, device: torch.device, obs_shape, ac
         for label in versions:
             ROWS.append({"device": device.type, "size": options.sizes[0], "method": method, "version": label,
                          "median_seconds": float(np.median(seconds[label])), "seconds": seconds[label],
-                         **{p: float(np.median(parts[label][p])) for p in PARTS}, "flags": run_flags(args),
+                         **{p: float(np.median(parts[label][p])) for p in PARTS},
+                         "flags": run_flags(versions[label][1]),
                          f"paired_{second}_over_{first}": float(np.median(b / a)), "pairs": len(a),
                          f"pairs_{first}_faster": int(np.sum(b > a))})
             print(f"{device.type:<6} {options.sizes[0]:<6} {method:<8} {label:<24} {np.median(seconds[label]):>9.3f} "
@@ -286,6 +287,8 @@ def paired_timing(S, options: Options, args, device: torch.device, obs_shape, ac
 def main(S, options: Options, args) -> None:
     """Seconds per full update per method and size, on CPU and on CUDA when present (--device auto), or on --device."""
     args = S.resolve_defaults(args)
+    if getattr(args, "cuda_graph", False) is None:  # the scripts' default (graphs on CUDA); the benchmark times eager
+        args = dataclasses.replace(args, cuda_graph=False)  # updates unless --cuda-graph True or --ab-flag cuda-graph
     S.check_args(args)
     if options.updates < 1:
         raise S.UsageError(f"--updates must be > 0 (got {options.updates})")

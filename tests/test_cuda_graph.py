@@ -4,6 +4,7 @@ a refresh, outputs, keys, retired graphs, the capture-failure fallback) gives th
 parameters, with a CPU stand-in for the capture. With CUDA: the same against real graphs (issue 39, item 7)."""
 import copy
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -26,6 +27,18 @@ def test_cuda_graph_is_refused_on_a_cpu():
                                        cuda_graph=True))
     with pytest.raises(rd.UsageError, match=r"^--cuda-graph needs a CUDA device \(--device cpu is cpu\)$"):
         rd.check_args(args)
+
+
+def test_a_resumed_run_takes_the_default_of_the_device_it_resumes_on(tmp_path):
+    """A run saved on a GPU (cuda_graph True) resumes on a CPU without the flag: graphs change speed, not the math,
+    so --cuda-graph is the resuming device's default (None, resolved by main) unless given again."""
+    saved = rd.resolve_defaults(rd.Args(obs_type="state", env_id="dmc/cartpole-balance", cuda_graph=True))
+    (tmp_path / "args.json").write_text(json.dumps(dataclasses.asdict(saved)))
+    resumed, _ = rd.resolve_run(rd.Args(resume=str(tmp_path), device="cpu"), {"resume", "device"})
+    assert resumed.cuda_graph is None and resumed.device == "cpu"
+    with pytest.raises(rd.UsageError, match=r"--cuda-graph needs a CUDA device"):
+        rd.resolve_run(rd.Args(resume=str(tmp_path), device="cpu", cuda_graph=True), {"resume", "device",
+                                                                                         "cuda_graph"})
 
 
 def test_padded_pool_is_never_picked():

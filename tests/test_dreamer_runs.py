@@ -40,7 +40,9 @@ def test_tiny_run_writes_a_complete_run_folder(tmp_path, obs_type):
     run_path = only_run(tmp_path)
     assert os.path.basename(run_path).startswith("dmc_walker-walk__rama_dreamer__dreamer__1__")
     with open(os.path.join(run_path, "args.json")) as f:
-        assert json.load(f)["obs_type"] == obs_type
+        saved = json.load(f)
+    # --cuda-graph's default (None) is saved resolved: off on this CPU (on where the device is CUDA)
+    assert saved["obs_type"] == obs_type and saved["cuda_graph"] is torch.cuda.is_available()
     names = sorted(os.path.basename(p) for p in glob.glob(os.path.join(run_path, "episodes", "*")))
     assert names == [f"{i:06d}-50.npz" for i in range(4)]
     with np.load(os.path.join(run_path, "episodes", names[0])) as ep:
