@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One planned GPU session (issue 39: CUDA graphs), in stages, each writing its output under $OUT. Run by the device
 # tool from the repository root, with the packages its image lacks carried in .gpu/ (not committed; how to make it:
-# docs/benchmarks.md, section "`--cuda-graph`: written and tested on the CPU"):
+# docs/benchmarks.md, section "`--cuda-graph`: the whole update as CUDA graphs"):
 #   run(command="bash benchmarks/gpu_session.sh check graphs", carry=[".gpu"])      # estimated 4 min
 #   run(command="bash benchmarks/gpu_session.sh precision profile", carry=[".gpu"]) # estimated 4 min
 # Stages:
@@ -52,14 +52,14 @@ for stage in "$@"; do
       TORCH_ALLOW_TF32_CUBLAS_OVERRIDE=1 timeout "$(cap 120)" $BENCH --ab-flag cuda-graph --sizes paper --updates 10 \
         --json "$OUT/graphs-paper-tf32.json" 2>&1 | tee "$OUT/graphs-paper-tf32.txt" ;;
     profile)
-      timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --profile --cuda-graph 2>&1 \
+      timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --profile --cuda-graph True 2>&1 \
         | tee "$OUT/profile-graphs.txt" | tail -30
       timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --profile 2>&1 \
         | tee "$OUT/profile-eager.txt" | tail -30 ;;
     e2e-eager|e2e-graphs)  # one per call: the eager run takes about 8 of a call's 10 minutes
-      flag=$([ "$stage" = e2e-graphs ] && echo --cuda-graph || echo --no-cuda-graph)
+      flag=$([ "$stage" = e2e-graphs ] && echo True || echo False)
       timeout "$(( $(left) - 10 ))" python3 rama_dreamer.py --env-id dmc/walker-walk --total-steps 20000 --eval-every 20000 \
-        --plain-log --run-dir /tmp/e2e --exp-name "$stage" $flag 2>&1 | tee "$OUT/$stage.txt" | tail -8
+        --plain-log --run-dir /tmp/e2e --exp-name "$stage" --cuda-graph $flag 2>&1 | tee "$OUT/$stage.txt" | tail -8
       cp /tmp/e2e/*"$stage"*/metrics.jsonl "$OUT/$stage-metrics.jsonl" ;;  # the episodes stay there (GBs)
     share)  # issue 39, item 5: N runs side by side on the one GPU: aggregate env steps/s and GPU memory per run
       for spec in "state 1" "state 2" "state 4" "pixels 2"; do
@@ -67,7 +67,7 @@ for stage in "$@"; do
         for i in $(seq 1 "$n"); do
           python3 rama_dreamer.py --env-id dmc/walker-walk --obs-type "$obs" $([ "$obs" = state ] && echo \
             --batch-size 16 --mlp-units 200) --total-steps 10000 --eval-every 10000 --plain-log --seed "$i" \
-            --run-dir /tmp/share --exp-name "share_${obs}_${n}" ${GRAPHS:---cuda-graph} \
+            --run-dir /tmp/share --exp-name "share_${obs}_${n}" --cuda-graph ${GRAPHS:-True} \
             > "/tmp/share_${obs}_${n}_$i.log" 2>&1 &
           pids="$pids $!"
         done
@@ -77,7 +77,7 @@ for stage in "$@"; do
           "GPU MiB per process at 20 s: $mem" | tee -a "$OUT/share.txt"
       done ;;
     pixels-start)  # issue 40, detached: the runs go on while later calls hold the machine (within 30 s of each other)
-      # PIXEL_ONLY picks the runs, PIXEL_FLAGS adds flags to the spec's (e.g. --cuda-graph --precision bf16)
+      # PIXEL_ONLY picks the runs, PIXEL_FLAGS adds flags to the spec's (e.g. --precision bf16; graphs are the CUDA default)
       sed "s|^flags = \"\"\"|flags = \"\"\"${PIXEL_FLAGS:-} |" sweeps/pixels_dreamer.toml > /tmp/pixels.toml
       grep -A1 '^flags = """' /tmp/pixels.toml | tee "$OUT/pixels-spec.txt"
       set -f; setsid nohup python3 sweep.py /tmp/pixels.toml --workers "${PIXEL_WORKERS:-3}" --only ${PIXEL_ONLY:-walker_stand__*} \
@@ -102,4 +102,8 @@ for stage in "$@"; do
             "pixels-poll, pixels-pack, share)" ;;
   esac
 done
+# the device tool brings back at most 8 files: past 7, everything goes back as one archive
+if [ "$(find "$OUT" -type f | wc -l)" -gt 7 ]; then
+  tar czf /tmp/session.tgz -C "$OUT" . && rm -rf "${OUT:?}"/* && mv /tmp/session.tgz "$OUT/session.tgz"
+fi
 echo "=== done ($(date -u +%T))"
