@@ -2,8 +2,12 @@
 # One planned GPU session (issue 39: CUDA graphs), in stages, each writing its output under $OUT. Run by the device
 # tool from the repository root, with the packages its image lacks carried in .gpu/ (not committed; how to make it:
 # docs/benchmarks.md, section "`--cuda-graph`: the whole update as CUDA graphs"):
-#   run(command="bash benchmarks/gpu_session.sh check graphs", carry=[".gpu"])      # estimated 4 min
-#   run(command="bash benchmarks/gpu_session.sh precision profile", carry=[".gpu"]) # estimated 4 min
+#   run(command="BUDGET=555 bash benchmarks/gpu_session.sh check graphs precision profile", carry=[".gpu"])
+#       # 256 s on an H100 on 2026-11-24 (its tables: results/benchmarks/2026-11-24-h100.json)
+#   run(command="BUDGET=570 PIXEL_WORKERS=2 PIXEL_ONLY='walker_stand__dreamer__s3 cartpole_balance__dreamer__s1' \
+#       bash benchmarks/gpu_session.sh pixels-start pixels-poll pixels-pack", carry=[".gpu"])
+#   run(command="BUDGET=585 bash benchmarks/gpu_session.sh pixels-poll pixels-pack", carry=[".gpu"])  # within 30 s
+#       # two pixel runs of 100k env steps side by side: 23.5 min (2026-11-24), so three calls in all
 # Stages:
 #   check      the CUDA equivalence test: graphed updates against eager ones (tests/test_cuda_graph.py)
 #   graphs     --cuda-graph on/off, paired, every method, fp32: paper size (pixels, 50x50) and state mode (16x50)
