@@ -66,7 +66,14 @@ for stage in "$@"; do
         --plain-log --run-dir /tmp/e2e --exp-name "$stage" --cuda-graph $flag 2>&1 | tee "$OUT/$stage.txt" | tail -8
       cp /tmp/e2e/*"$stage"*/metrics.jsonl "$OUT/$stage-metrics.jsonl" ;;  # the episodes stay there (GBs)
     share)  # issue 39, item 5: N runs side by side on the one GPU: aggregate env steps/s and GPU memory per run
-      for spec in "state 1" "state 2" "state 4" "pixels 2"; do
+      # MPS=1: through NVIDIA's multi-process service, so that the runs' small kernels may overlap rather than take
+      # turns (if the image has nvidia-cuda-mps-control; otherwise one line says so and the runs share as usual)
+      if [ "${MPS:-0}" = 1 ]; then
+        export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps CUDA_MPS_LOG_DIRECTORY=/tmp/mps-log; mkdir -p /tmp/mps /tmp/mps-log
+        nvidia-cuda-mps-control -d 2>&1 | tee -a "$OUT/share.txt" || echo "MPS: could not start" | tee -a "$OUT/share.txt"
+      fi
+      IFS=';' read -ra specs <<< "${SHARE:-state 1;state 2;state 4;pixels 2}"  # SHARE="state 8;state 16" for others
+      for spec in "${specs[@]}"; do
         set -- $spec; obs=$1; n=$2; start=$(date +%s.%N); pids=""
         for i in $(seq 1 "$n"); do
           python3 rama_dreamer.py --env-id dmc/walker-walk --obs-type "$obs" $([ "$obs" = state ] && echo \
@@ -78,8 +85,9 @@ for stage in "$@"; do
         sleep 20; mem=$(nvidia-smi --query-compute-apps=used_memory --format=csv,noheader,nounits | paste -sd+)
         wait $pids; took=$(python3 -c "import time; print(f'{time.time() - $start:.1f}')")
         echo "$obs x$n: ${took} s wall, $(python3 -c "print(f'{$n * 10000 / $took:.0f}')") env steps/s in all," \
-          "GPU MiB per process at 20 s: $mem" | tee -a "$OUT/share.txt"
-      done ;;
+          "GPU MiB per process at 20 s: $mem, MPS ${MPS:-0}" | tee -a "$OUT/share.txt"
+      done
+      [ "${MPS:-0}" = 1 ] && { echo quit | nvidia-cuda-mps-control; } ;;
     pixels-start)  # issue 40, detached: the runs go on while later calls hold the machine (within 30 s of each other)
       # PIXEL_ONLY picks the runs, PIXEL_FLAGS adds flags to the spec's (e.g. --precision bf16; graphs are the CUDA default)
       sed "s|^flags = \"\"\"|flags = \"\"\"${PIXEL_FLAGS:-} |" sweeps/pixels_dreamer.toml > /tmp/pixels.toml
