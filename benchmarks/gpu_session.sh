@@ -8,6 +8,9 @@
 #       bash benchmarks/gpu_session.sh pixels-start pixels-poll pixels-pack", carry=[".gpu"])
 #   run(command="BUDGET=585 bash benchmarks/gpu_session.sh pixels-poll pixels-pack", carry=[".gpu"])  # within 30 s
 #       # two pixel runs of 100k env steps side by side: 23.5 min (2026-11-24), so three calls in all
+#   run(command="BUDGET=400 SHARE='state 1;state 2;state 4' bash benchmarks/gpu_session.sh e2e-graphs share; \
+#       MPS=1 BUDGET=170 SHARE='state 4' bash benchmarks/gpu_session.sh share", carry=[".gpu"])
+#       # issue 39's remainder, estimated (not yet run): one pixel run alone, then state runs side by side, then MPS
 # Stages:
 #   check      the CUDA equivalence test: graphed updates against eager ones (tests/test_cuda_graph.py)
 #   graphs     --cuda-graph on/off, paired, every method, fp32: paper size (pixels, 50x50) and state mode (16x50)
