@@ -77,9 +77,10 @@ for stage in "$@"; do
       fi
       IFS=';' read -ra specs <<< "${SHARE:-state 1;state 2;state 4;pixels 2}"  # SHARE="state 8;state 16" for others
       for spec in "${specs[@]}"; do
-        set -- $spec; obs=$1; n=$2; start=$(date +%s.%N); pids=""
+        [ "$(left)" -lt 60 ] && { echo "share: $spec skipped (the call's deadline)" | tee -a "$OUT/share.txt"; continue; }
+        set -- $spec; obs=$1; n=$2; start=$(date +%s.%N); pids=""; limit=$(( $(left) - 15 ))
         for i in $(seq 1 "$n"); do
-          python3 rama_dreamer.py --env-id dmc/walker-walk --obs-type "$obs" $([ "$obs" = state ] && echo \
+          timeout "$limit" python3 rama_dreamer.py --env-id dmc/walker-walk --obs-type "$obs" $([ "$obs" = state ] && echo \
             --batch-size 16 --mlp-units 200) --total-steps 10000 --eval-every 10000 --plain-log --seed "$i" \
             --run-dir /tmp/share --exp-name "share_${obs}_${n}" --cuda-graph ${GRAPHS:-True} \
             > "/tmp/share_${obs}_${n}_$i.log" 2>&1 &
