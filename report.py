@@ -7,6 +7,8 @@
                                                            # returns of single runs, in one figure
     python report.py results/pixels_dreamer --key eval/episodic_return \
         --reference results/pixels_dreamer/reference.json  # against Dreamer v1's published curves
+    python report.py results/families_state --levels results/families_state/references.json  # against a random
+                                                           # policy's and the scripted expert's levels
 
 An experiment folder holds one folder per run, named <cell>__<method>__s<seed> as sweep.py writes them, each with
 args.json and metrics.jsonl. A folder named otherwise is grouped by its args.json (env id, method, seed). A
@@ -27,6 +29,8 @@ environment steps; the line is the mean over seeds of those bin averages, and th
 --reference adds a published curve (tools/dreamer_v1_reference.py writes Dreamer v1's): drawn as its mean ± std
 band, and a table of each run's value at the reference's checkpoints (the mean over the reference's window up to
 each, or the logged step nearest each, within 10%) against the reference's mean ± 2 std.
+--levels adds fixed policies' levels per task (tools/family_references.py writes a random policy's and the scripted
+expert's): dotted lines on the curves, and a table of each method's last values against them.
 """
 import argparse
 import glob
@@ -165,7 +169,7 @@ def fmt(x: float, decimals: int) -> str:
 
 
 def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str,
-                 beside: tuple = (), reference: dict = None):
+                 beside: tuple = (), reference: dict = None, levels: dict = None):
     runs = load_experiment(folder, key)
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
@@ -203,6 +207,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     lines += improvement_table(scores, tasks, methods, reps, seed, decimals)
     lines += diagnostics_table(runs, tasks, methods, decimals)
     lines += reference_table(runs, tasks, methods, reference, decimals) if reference else []
+    lines += levels_table(runs, tasks, methods, key, levels, decimals) if levels else []
     figure = "curves.png"
     lines += ["", f"![learning curves]({figure})", "", "## Runs", "",
               "| run | task | episodes | last env step | average return |", "| --- | --- | --- | --- | --- |"]
@@ -212,7 +217,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     with open(os.path.join(out, "report.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     plot_curves(runs, tasks, methods, key, bins, f"{experiment}: {key} (mean ± s.e. over seeds)",
-                os.path.join(out, figure), reference)
+                os.path.join(out, figure), reference, levels)
     print(f"wrote {os.path.join(out, 'report.md')} and {os.path.join(out, figure)}")
 
 
@@ -335,10 +340,49 @@ def task_reference(runs: list, task: str, reference: dict = None):
     return next((reference["tasks"][c] for c in current if c in reference["tasks"]), None) if reference else None
 
 
+LAST_VALUES = 10  # --levels: a run is scored by the mean of its last this many values of the key
+
+
+def task_levels(levels: dict, task: str, key: str) -> dict:
+    """A task's fixed-policy levels for `key` (--levels, as tools/family_references.py writes them): {policy: (value,
+    s.e., episodes)}; a key's level is the entry named by its last part without `episodic_` (return, success_rate)."""
+    name = key.split("/")[-1].removeprefix("episodic_")
+    return {policy: (entry[name], entry.get(f"{name}_se", float("nan")), entry.get("episodes", 0))
+            for policy, entry in (levels or {}).get(task, {}).items() if name in entry}
+
+
+def levels_table(runs: list, tasks: list, methods: list, key: str, levels: dict, decimals: int) -> list:
+    """Each task's runs, scored by their last values, against fixed policies' levels (a random policy, a scripted
+    expert): the mean ± s.e. over seeds, and the fraction of the way from `random` to `expert` when both are given."""
+    lines = ["", "## Against fixed policies", "",
+             f"Each run's mean of its last {LAST_VALUES} values of `{key}`; per method the mean ± s.e. over seeds, "
+             f"against the levels of fixed policies (value ± s.e. over their episodes). `random → expert`: "
+             f"(runs − random) / (expert − random), 0 at the random policy's level and 1 at the expert's.", "",
+             "| task | method | runs: last values, mean ± s.e. (seeds) | last env steps | fixed policies | "
+             "random → expert |", "| --- | --- | --- | --- | --- | --- |"]
+    for task in tasks:
+        levels_here = task_levels(levels, task, key)
+        for method in methods if levels_here else []:
+            cell = [r for r in runs if r["task"] == task and r["method"] == method]
+            if not cell:
+                continue
+            mean, se = mean_se([r["values"][-LAST_VALUES:].mean() for r in cell])
+            shown = ", ".join(f"{policy} {fmt(v, decimals)} ± {fmt(e, decimals)} ({n})"
+                              for policy, (v, e, n) in levels_here.items())
+            fraction = "–"
+            if {"random", "expert"} <= set(levels_here) and levels_here["expert"][0] != levels_here["random"][0]:
+                fraction = fmt((mean - levels_here["random"][0]) / (levels_here["expert"][0] -
+                                                                    levels_here["random"][0]), 2)
+            last_steps = ", ".join(f"{int(r['steps'][-1]):,}" for r in cell)
+            lines.append(f"| {task} | {method_name(method)} | {fmt(mean, decimals)} ± {fmt(se, decimals)} ({len(cell)})"
+                         f" | {last_steps} | {shown} | {fraction} |")
+    return lines
+
+
 def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, title: str, path: str,
-                reference: dict = None):
+                reference: dict = None, levels: dict = None):
     """One panel per task; per method, the mean over seeds of each run's bin averages, with a ± s.e. band; a
-    reference curve of the task, if given, as a grey mean ± std band."""
+    reference curve of the task, if given, as a grey mean ± std band; fixed policies' levels as dotted lines."""
     cols = min(3, len(tasks))
     rows = (len(tasks) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.5 * rows), squeeze=False)
@@ -370,6 +414,8 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
             shown = ref_steps <= edges[-1] * 1.05  # the reference as far as the runs go
             ax.plot(ref_steps[shown], mean[shown], "k--", label=f"{reference['name']} (mean ± std)")
             ax.fill_between(ref_steps[shown], (mean - std)[shown], (mean + std)[shown], color="grey", alpha=0.25)
+        for i, (policy, (value, _, episodes)) in enumerate(task_levels(levels, task, key).items()):
+            ax.axhline(value, color=f"{0.6 * (i % 2)}", linestyle=":", label=f"{policy} policy ({episodes} episodes)")
         ax.set_title(task, fontsize=9)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(key.split("/")[-1].replace("_", " "))
@@ -451,6 +497,8 @@ def main():
     parser.add_argument("--decimals", type=int, default=1, help="decimals in the tables")
     parser.add_argument("--reference", default=None, metavar="FILE", help="a published curve to draw and tabulate "
                         "against (JSON, as tools/dreamer_v1_reference.py writes it)")
+    parser.add_argument("--levels", default=None, metavar="FILE", help="fixed policies' levels to draw and tabulate "
+                        "against, per task (JSON, as tools/family_references.py writes it)")
     parser.add_argument("--beside", nargs="+", default=[], metavar="FOLDER",
                         help="other experiment folders whose runs of the same tasks join the tables (e.g. the same "
                              "grid under another --preset)")
@@ -474,6 +522,15 @@ def main():
         if reference["key"] != args.key:
             sys.exit(f"error: --reference {args.reference} holds {reference['key']}: give --key {reference['key']}")
         options += f" --reference {args.reference}"
+    levels = None
+    if args.levels:
+        try:
+            with open(args.levels) as f:
+                levels = json.load(f)
+            assert isinstance(levels, dict) and all(isinstance(v, dict) for v in levels.values())
+        except (OSError, ValueError, AssertionError) as e:
+            sys.exit(f"error: --levels {args.levels}: not a levels file ({type(e).__name__})")
+        options += f" --levels {args.levels}"
     for folder in args.beside:
         if not glob.glob(os.path.join(folder, "*", "args.json")):
             sys.exit(f"error: --beside {folder}: holds no run folders (<run>/args.json)")
@@ -489,7 +546,7 @@ def main():
             out = args.out if args.out and len(experiments) == 1 else \
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
             write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals, options,
-                         tuple(args.beside), reference)
+                         tuple(args.beside), reference, levels)
 
 
 if __name__ == "__main__":

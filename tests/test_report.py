@@ -259,3 +259,30 @@ def test_reference_table_with_a_binned_reference(tmp_path):
     assert rows == ["| stand | Dreamer | 105,000 | 200.0 ± 100.0 (2) | 20,000, 40,000, 60,000, 80,000, 100,000 | "
                     "315.0 ± 70.0 (5) | 1 of 2 |"]  # no evaluation in (105k, 205k]: no row
     assert "in the 100,000 env steps up to each checkpoint" in text
+
+
+def test_levels_table_and_lines_by_hand(tmp_path):
+    """--levels: each run's mean over its last 10 values against fixed policies' levels, and the fraction of the way
+    from the random policy's level to the expert's; a task without levels gets no rows; a bad file is refused."""
+    exp = tmp_path / "results" / "families"
+    write_run(exp, "box__dreamer__s1", [100.0] * 5 + [10.0] * 10)  # last 10: 10
+    write_run(exp, "box__dreamer__s2", [30.0] * 3)  # fewer than 10 values: all of them, 30
+    write_run(exp, "reach__dreamer__s1", [1.0])
+    levels = tmp_path / "references.json"
+    levels.write_text(json.dumps({"box": {"random": {"return": 0.0, "return_se": 0.0, "episodes": 10},
+                                          "expert": {"return": 50.0, "return_se": 0.5, "episodes": 10,
+                                                     "success_rate": 1.0}}}))
+    run_script("report.py", str(exp), "--levels", str(levels), "--reps", "50")
+    text = (exp / "report.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| box | Dreamer |")]
+    # mean of 10 and 30 = 20, s.e. = std(ddof 1) / sqrt(2) = 14.142 / 1.414 = 10; (20 - 0) / (50 - 0) = 0.40
+    assert rows == ["| box | Dreamer | 20.0 ± 10.0 (2) | 1,500, 300 | random 0.0 ± 0.0 (10), expert 50.0 ± 0.5 (10) | "
+                    "0.40 |"]
+    assert "| reach |" not in text.split("## Against fixed policies")[1].split("## Runs")[0]
+    assert f"--levels {levels}" in text and (exp / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # success_rate: only the expert has that level (no s.e. given: nan), so the random -> expert fraction is absent
+    success = report.task_levels(json.loads(levels.read_text()), "box", "charts/success_rate")
+    assert list(success) == ["expert"] and success["expert"][::2] == (1.0, 10) and np.isnan(success["expert"][1])
+    levels.write_text("[1, 2]")
+    bad = run_script("report.py", str(exp), "--levels", str(levels), check=False)
+    assert bad.returncode != 0 and bad.stderr.strip() == f"error: --levels {levels}: not a levels file (AssertionError)"
