@@ -2,6 +2,7 @@
 
     python sweep.py sweeps/cartpole_tables.toml --dry-run                # print each run's command, run nothing
     python sweep.py sweeps/cartpole_tables.toml --workers 2              # 2 runs at a time, OMP_NUM_THREADS = cores / 2
+    OMP_NUM_THREADS=1 python sweep.py sweeps/cartpole_tables.toml        # a given OMP_NUM_THREADS is kept: cores shared
     python sweep.py sweeps/cartpole_tables.toml --ray-address auto       # each run a Ray task on a running cluster
 
 The spec (see sweeps/*.toml) names the script, the flags common to every run, and cells. A cell has its own flags
@@ -303,9 +304,16 @@ def progress_line(k: int, total: int, result: dict) -> str:
             f"{result['minutes']:.1f} min | {summary}")
 
 
+def threads_per_run(workers: int) -> int:
+    """Each local run's OMP_NUM_THREADS: the caller's when set (e.g. 1 for two sweeps side by side on 2 cores, where
+    cores / workers would oversubscribe them), else cores / workers."""
+    given = os.environ.get("OMP_NUM_THREADS", "")
+    return int(given) if given.isdigit() and int(given) > 0 else max(1, (os.cpu_count() or 1) // workers)
+
+
 def run_local(runs: list, todo: list, workers: int) -> list:
     """Up to `workers` runs at a time in threads (each waits on its subprocess); returns the failure lines."""
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    threads = threads_per_run(workers)
     state = {r.name: "done" for r in runs if r not in todo}
     waiting, running, failures, k = list(todo), {}, [], 0
     with concurrent.futures.ThreadPoolExecutor(workers) as pool:
@@ -370,7 +378,8 @@ def run_ray(todo: list, address: str, retries: int) -> list:
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("spec", help="a sweep spec (TOML), e.g. sweeps/cartpole_tables.toml")
-    parser.add_argument("--workers", type=int, default=1, help="local backend: runs at a time (each gets cores / N threads)")
+    parser.add_argument("--workers", type=int, default=1, help="local backend: runs at a time (each gets cores / N threads, or "
+                        "OMP_NUM_THREADS when set)")
     parser.add_argument("--ray-address", default=None,
                         help="run on Ray: `auto` (a running cluster), `local` (start one here) or host:port")
     parser.add_argument("--ray-retries", type=int, default=3, help="Ray: retries of a run lost to a node failure or a kill")

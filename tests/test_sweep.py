@@ -337,3 +337,16 @@ def test_every_committed_spec_expands(spec):
     proc = run_script("sweep.py", spec, "--dry-run")
     runs = [line for line in proc.stdout.splitlines() if re.match(r"\S+__s\d+ \[(new|done|resume)", line)]
     assert runs and all("rama_" in line for line in runs if "[new]" in line)  # done runs print no command
+
+
+def test_threads_per_run_keep_a_given_omp_num_threads(monkeypatch):
+    """cores / workers by default; an OMP_NUM_THREADS the caller set wins (two sweeps of one worker each on 2 cores
+    would otherwise run 2 threads each: 4 on 2 cores); an unusable value falls back to cores / workers."""
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert [sweep.threads_per_run(w) for w in (1, 2, 3, 16)] == [8, 4, 2, 1]
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert sweep.threads_per_run(1) == 1
+    for bad in ("0", "two", ""):
+        monkeypatch.setenv("OMP_NUM_THREADS", bad)
+        assert sweep.threads_per_run(2) == 4
