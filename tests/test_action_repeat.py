@@ -6,6 +6,7 @@ import gymnasium
 import numpy as np
 import pytest
 
+from helpers import TINY, run_script
 import rama_dreamer as rd
 import rama_metaworld as rm
 
@@ -133,3 +134,18 @@ def test_family_references_score_the_random_policy_and_the_expert():
     assert kitchen["random"]["success_rate"] == 0.0 and abs(kitchen["random"]["return"]) < 1.0
     drawer = score(rm, "metaworld/drawer-close", {"task_set": "new"}, "expert", episodes=1)
     assert drawer["success_rate"] == 1.0 and drawer["episodes"] == 1
+
+
+def test_eval_actions_scores_a_checkpoint_with_each_evaluation_action(tmp_path):
+    """tools/eval_actions.py on a tiny run: one row per evaluation action, the checkpoint's update count, the same
+    numbers on a second call (same episode seeds and sample streams); a folder without a run is one line."""
+    run_script("rama_dreamer.py", "--env-id", "dmc/cartpole-balance", "--obs-type", "state", *TINY,
+               "--run-dir", str(tmp_path / "runs"))
+    first = run_script("tools/eval_actions.py", str(tmp_path / "runs"), "--episodes", "2").stdout
+    lines = first.strip().splitlines()
+    assert "checkpoint after 4 updates, 2 episodes per action" in lines[0]  # 3 episodes of 100: 2 rounds of 2
+    assert [line.split(" | ")[0] for line in lines[3:]] == ["| sample-mode", "| mean", "| explore"]
+    assert all(line.endswith("| – |") for line in lines[3:])  # cartpole reports no success
+    assert run_script("tools/eval_actions.py", str(tmp_path / "runs"), "--episodes", "2").stdout == first
+    bad = run_script("tools/eval_actions.py", str(tmp_path), check=False)
+    assert bad.returncode != 0 and bad.stderr.strip() == f"error: {tmp_path}: no run folder with checkpoint.pt"
