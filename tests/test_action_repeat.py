@@ -136,6 +136,7 @@ def test_family_references_score_the_random_policy_and_the_expert():
     assert drawer["success_rate"] == 1.0 and drawer["episodes"] == 1
 
 
+@pytest.mark.slow
 def test_eval_actions_scores_a_checkpoint_with_each_evaluation_action(tmp_path):
     """tools/eval_actions.py on a tiny run: one row per evaluation action, the checkpoint's update count, the same
     numbers on a second call (same episode seeds and sample streams); a folder without a run is one line."""

@@ -261,6 +261,7 @@ def test_reference_table_with_a_binned_reference(tmp_path):
     assert "in the 100,000 env steps up to each checkpoint" in text
 
 
+@pytest.mark.slow
 def test_levels_table_and_lines_by_hand(tmp_path):
     """--levels: each run's mean over its last 10 values against fixed policies' levels, and the fraction of the way
     from the random policy's level to the expert's; a task without levels gets no rows; a bad file is refused."""
