@@ -527,7 +527,8 @@ def main():
         try:
             with open(args.levels) as f:
                 levels = json.load(f)
-            assert isinstance(levels, dict) and all(isinstance(v, dict) for v in levels.values())
+            assert isinstance(levels, dict) and all(isinstance(v, dict) and all(isinstance(p, dict) for p in v.values())
+                                                    for v in levels.values())  # task -> policy -> {metric: value}
         except (OSError, ValueError, AssertionError) as e:
             sys.exit(f"error: --levels {args.levels}: not a levels file ({type(e).__name__})")
         options += f" --levels {args.levels}"

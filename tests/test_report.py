@@ -284,6 +284,8 @@ def test_levels_table_and_lines_by_hand(tmp_path):
     # success_rate: only the expert has that level (no s.e. given: nan), so the random -> expert fraction is absent
     success = report.task_levels(json.loads(levels.read_text()), "box", "charts/success_rate")
     assert list(success) == ["expert"] and success["expert"][::2] == (1.0, 10) and np.isnan(success["expert"][1])
-    levels.write_text("[1, 2]")
-    bad = run_script("report.py", str(exp), "--levels", str(levels), check=False)
-    assert bad.returncode != 0 and bad.stderr.strip() == f"error: --levels {levels}: not a levels file (AssertionError)"
+    for wrong in ("[1, 2]", '{"box": {"random": 0.0}}'):  # not task -> policy -> {metric: value}
+        levels.write_text(wrong)
+        bad = run_script("report.py", str(exp), "--levels", str(levels), check=False)
+        assert bad.returncode != 0
+        assert bad.stderr.strip() == f"error: --levels {levels}: not a levels file (AssertionError)"
