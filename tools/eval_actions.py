@@ -11,7 +11,6 @@ Why: it tells whether a run's evaluation return differs from its training return
 the policy itself changed. Single-task runs (a folder with checkpoint.pt, or a sweep folder holding one).
 """
 import argparse
-import dataclasses
 import glob
 import json
 import os
@@ -38,14 +37,12 @@ def run_folder(path: str) -> str:
     return found[0]
 
 
-def evaluate(path: str, rules: list, episodes: int) -> dict:
-    """rule -> {"returns": [...], "successes": [...]} over `episodes` episodes of the run's evaluation env."""
+def evaluate(path: str, rules: list, episodes: int) -> tuple:
+    """({rule: {"returns": [...], "successes": [...]}} over `episodes` episodes of the run's evaluation env, the
+    checkpoint's update count). The run's args come as --resume reads them (older runs' ADDED_FLAGS included)."""
     with open(os.path.join(path, "args.json")) as f:
-        saved = json.load(f)
-    S = rama_metaworld if saved["env_id"].startswith("metaworld/") else rama_dreamer
-    fields = {f.name: f for f in dataclasses.fields(S.Args)}
-    args = S.Args(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items() if k in fields})
-    args = dataclasses.replace(args, num_envs=1, capture_video=False, cuda_graph=False, device="cpu")
+        S = rama_metaworld if json.load(f)["env_id"].startswith("metaworld/") else rama_dreamer
+    args, _ = S.resolve_run(S.Args(resume=path, device="cpu", cuda_graph=False), {"resume", "device", "cuda_graph"})
     payload = S.read_checkpoint(os.path.join(path, "checkpoint.pt"), args)
     envs = S.make_envs(args, args.env_id, args.seed + 10_000, 1)
     agent = S.Agent(envs.single_observation_space.shape, envs.single_action_space.shape[0], args)
@@ -80,9 +77,7 @@ def main():
     path = run_folder(cli.run)
     try:
         results, updates = evaluate(path, cli.rules, cli.episodes)
-    except rama_dreamer.UsageError as e:  # both scripts' UsageError: a bad checkpoint or args.json
-        sys.exit(f"error: {e}")
-    except rama_metaworld.UsageError as e:
+    except (rama_dreamer.UsageError, rama_metaworld.UsageError) as e:  # a bad checkpoint or args.json
         sys.exit(f"error: {e}")
     print(f"{path}: checkpoint after {updates} updates, {cli.episodes} episodes per action (same seeds)")
     print("| action | return (mean ± s.e.) | success rate |\n| --- | --- | --- |")
