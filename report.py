@@ -510,7 +510,7 @@ def main():
     # the options that change the report, for its "Made by" line
     options = "".join(f" --{name} {getattr(args, name)}" for name in ("key", "reps", "seed", "bins", "decimals")
                       if getattr(args, name) != parser.get_default(name))
-    options += "".join(f" --beside {b}" for b in args.beside)
+    options += f" --beside {' '.join(args.beside)}" if args.beside else ""  # one flag: a second --beside replaces
     reference = None
     if args.reference:
         try:
@@ -546,8 +546,8 @@ def main():
         for experiment in experiments:
             out = args.out if args.out and len(experiments) == 1 else \
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
-            write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals, options,
-                         tuple(args.beside), reference, levels)
+            write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals,
+                         options + (f" --out {out}" if args.out else ""), tuple(args.beside), reference, levels)
 
 
 if __name__ == "__main__":

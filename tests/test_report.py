@@ -157,6 +157,8 @@ def test_diagnostics_table_by_hand(tmp_path):
 def test_report_out_folder_and_errors(results, tmp_path):
     run_script("report.py", str(results), "--out", str(tmp_path / "docs"), "--reps", "100")
     assert sorted(os.listdir(tmp_path / "docs")) == ["curves.png", "report.md"]
+    made_by = f"`python report.py {results} --reps 100 --out {tmp_path / 'docs'}`"  # says where it went, too
+    assert made_by in (tmp_path / "docs" / "report.md").read_text()
     proc = run_script("report.py", str(tmp_path / "nothing"), check=False)
     assert proc.returncode != 0 and "no such folder" in proc.stderr
 
@@ -184,13 +186,17 @@ def test_preset_runs_are_their_own_rows_beside_another_experiment(tmp_path):
     write_run(authors, "walk__rrama__s1", [3.0], {**preset, "method": "rrama"})
     write_run(paper, "walk__uniform__s1", [2.0], {"env_id": "dmc/x", "method": "uniform", "seed": 1})
     write_run(paper, "run__uniform__s1", [9.0], {"env_id": "dmc/x", "method": "uniform", "seed": 1})  # not in authors
-    run_script("report.py", str(authors), "--beside", str(paper), "--reps", "200", "--decimals", "2")
+    other = tmp_path / "results" / "other"  # a second --beside folder: its runs join too
+    write_run(other, "walk__uniform__s2", [2.5], {"env_id": "dmc/x", "method": "uniform", "seed": 2})
+    run_script("report.py", str(authors), "--beside", str(paper), str(other), "--reps", "200", "--decimals", "2")
     text = (authors / "report.md").read_text()
     rows = [line.split("|")[1].strip() for line in text.splitlines()
             if line.startswith("| ") and "±" in line and not line.startswith("| method")]
     assert rows == ["No addressing (uniform)", "No addressing (uniform), authors' code", "RRAMa, authors' code"]
-    assert "| run__" not in text and "run: mean" not in text and f"--beside {paper}" in text  # walk only
+    assert "| run__" not in text and "run: mean" not in text  # walk only
+    assert f"`python report.py {authors} --reps 200 --decimals 2 --beside {paper} {other}`" in text  # re-runnable
     assert "| walk__uniform__s1 | walk |" in text and "| paper/walk__uniform__s1 | walk |" in text  # the Runs table
+    assert "| other/walk__uniform__s2 | walk |" in text and "| 2.25 ± 0.25 (2) |" in text
     header = next(line for line in text.splitlines() if line.startswith("| method") and "P(>" in line)
     assert header.count("P(>") == 2 and "P(> No addressing (uniform), authors' code)" in header
     rrama = next(line for line in text.splitlines() if line.startswith("| RRAMa, authors' code") and "[" in line
