@@ -1,6 +1,6 @@
 """Tables and learning curves from results/: the paper's metric per task and method, by one command.
 
-    python report.py results/cartpole_tables            # -> results/cartpole_tables/report.md and curves.png
+    python report.py results/cartpole_tables            # -> results/cartpole_tables/report.md, curves.png, scores.png
     python report.py results                               # every experiment under results/
     python report.py results/cartpole_tables --out docs # write them to docs/ instead
     python report.py --runs runs/<run> [runs/<run> ...] --out docs/curve.png   # the training and evaluation
@@ -24,8 +24,9 @@ A second table answers "does it beat Dreamer, and uniform mixing?": per task, ea
 improvement P(X > Y) over each, with its 95% bootstrap CI. A third says what the prior-data methods mixed into
 their batches (from the runs' addressing/ logs): the share of other tasks' chunks, the returns and reward sums of
 what was picked against what could have been, how peaked q is, and what the bandit objective gained.
-The curves show, per task, one line per method. Each run's returns are averaged in --bins equal bins of
-environment steps; the line is the mean over seeds of those bin averages, and the band is ± one s.e.
+scores.png shows every seed's number as a dot beside its method's mean ± s.e. The curves (curves.png) show, per
+task, one line per method. Each run's returns are averaged in --bins equal bins of environment steps; the line is
+the mean over seeds of those bin averages, and the band is ± one s.e.
 --reference adds a published curve (tools/dreamer_v1_reference.py writes Dreamer v1's): drawn as its mean ± std
 band, and a table of each run's value at the reference's checkpoints (the mean over the reference's window up to
 each, or the logged step nearest each, within 10%) against the reference's mean ± 2 std.
@@ -204,6 +205,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
             row += [f"{fmt(mean, decimals)} ± {fmt(se, decimals)} ({len(cell)})",
                     f"{fmt(iqm, decimals)} [{fmt(low, decimals)}, {fmt(high, decimals)}]"]
         lines.append("| " + " | ".join(row) + " |")
+    lines += ["", "Each seed's run average, and the mean ± s.e. over seeds:", "", "![scores per run](scores.png)"]
     lines += improvement_table(scores, tasks, methods, reps, seed, decimals)
     lines += diagnostics_table(runs, tasks, methods, decimals)
     lines += reference_table(runs, tasks, methods, reference, decimals) if reference else []
@@ -218,7 +220,9 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
         f.write("\n".join(lines) + "\n")
     plot_curves(runs, tasks, methods, key, bins, f"{experiment}: {key} (mean ± s.e. over seeds)",
                 os.path.join(out, figure), reference, levels)
-    print(f"wrote {os.path.join(out, 'report.md')} and {os.path.join(out, figure)}")
+    plot_scores(scores, tasks, methods, f"{experiment}: the average of {key} per run", key,
+                os.path.join(out, "scores.png"))
+    print(f"wrote {os.path.join(out, 'report.md')}, {os.path.join(out, figure)} and {os.path.join(out, 'scores.png')}")
 
 
 def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed: int, decimals: int) -> list:
@@ -427,6 +431,39 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def plot_scores(scores: dict, tasks: list, methods: list, title: str, key: str, path: str) -> dict:
+    """One panel per task, one row per method (the tables' order, top down, the same row in every panel): a dot per
+    seed's run average and the mean ± s.e. over seeds as a bar, so that a row's seeds can be read against every
+    other row's. Returns what each panel drew: task -> [(method, its seeds' scores)]."""
+    rows = {t: [(m, scores[(t, m)]) for m in methods if (t, m) in scores] for t in tasks}
+    cols = min(3, len(tasks))
+    grid = (len(tasks) + cols - 1) // cols
+    fig, axes = plt.subplots(grid, cols, figsize=(4.5 * cols + 2.5, (0.3 * len(methods) + 1.2) * grid),
+                             squeeze=False, sharey=True)
+    for ax, task in zip(axes.flat, tasks):
+        for method, values in rows[task]:
+            y, colour = -methods.index(method), f"C{methods.index(method) % 10}"  # the curves' colour of the method
+            mean, se = mean_se(values)
+            ax.errorbar(mean, y, xerr=se if len(values) > 1 else None, fmt="|", color=colour, markersize=14,
+                        capsize=3)
+            ax.plot(values, [y] * len(values), "o", color=colour, alpha=0.6, markersize=4)
+        ax.set_title(task, fontsize=9)
+        ax.set_xlabel(key.split("/")[-1].replace("_", " ") + " (average over the run)", fontsize=8)
+        ax.grid(alpha=0.3, axis="x")
+    axes[0, 0].set_yticks([-i for i in range(len(methods))])
+    axes[0, 0].set_yticklabels([method_name(m).replace("`", "") for m in methods])
+    for ax in axes[:, 0]:  # the shared labels, on each row of panels
+        ax.tick_params(axis="y", labelsize=7)
+    axes[0, 0].set_ylim(-len(methods) + 0.5, 0.5)
+    for ax in axes.flat[len(tasks):]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return rows
 
 
 def plot_runs(run_paths: list, out: str, title):

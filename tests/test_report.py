@@ -103,6 +103,7 @@ def test_report_tables_by_hand(results):
     assert "| walk__dreamer__s2 | walk | 2 | 200 | 2.000 |" in text  # the runs table (the resumed step counted once)
     assert "mixed batches" not in text  # no run logged addressing/ keys: no third table
     assert (results / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "![scores per run](scores.png)" in text and (results / "scores.png").read_bytes()[:4] == b"\x89PNG"
     # the bootstrap is seeded: the same command writes the same report
     run_script("report.py", str(results), "--reps", "500", "--decimals", "3")
     assert (results / "report.md").read_text() == text
@@ -153,10 +154,19 @@ def test_diagnostics_table_by_hand(tmp_path):
                     "| walk | RRAMa | 2 | 0.60 | 0.25 | 10.0 / 6.0 | 3.0 / 2.0 | 0.81 | 1.5 |"]
 
 
+def test_scores_figure_draws_each_seed_in_the_tables_order(tmp_path):
+    """scores.png: per task, the methods in the tables' order (those with runs there), each with its seeds' numbers."""
+    scores = {("walk", "dreamer"): [1.0, 2.0], ("walk", "rrama"): [4.0], ("run", "rrama"): [7.0, 9.0, 8.0]}
+    methods = report.method_order({m for _, m in scores})
+    drawn = report.plot_scores(scores, ["run", "walk"], methods, "t", "charts/episodic_return", tmp_path / "s.png")
+    assert drawn == {"run": [("rrama", [7.0, 9.0, 8.0])], "walk": [("dreamer", [1.0, 2.0]), ("rrama", [4.0])]}
+    assert (tmp_path / "s.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 @pytest.mark.slow
 def test_report_out_folder_and_errors(results, tmp_path):
     run_script("report.py", str(results), "--out", str(tmp_path / "docs"), "--reps", "100")
-    assert sorted(os.listdir(tmp_path / "docs")) == ["curves.png", "report.md"]
+    assert sorted(os.listdir(tmp_path / "docs")) == ["curves.png", "report.md", "scores.png"]
     made_by = f"`python report.py {results} --reps 100 --out {tmp_path / 'docs'}`"  # says where it went, too
     assert made_by in (tmp_path / "docs" / "report.md").read_text()
     proc = run_script("report.py", str(tmp_path / "nothing"), check=False)
