@@ -383,6 +383,16 @@ def levels_table(runs: list, tasks: list, methods: list, key: str, levels: dict,
     return lines
 
 
+def save_panels(fig, axes, used: int, title: str, path: str):
+    """A figure of task panels to a PNG: the panels past the first `used` blanked, the title on top."""
+    for ax in axes.flat[used:]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, title: str, path: str,
                 reference: dict = None, levels: dict = None):
     """One panel per task; per method, the mean over seeds of each run's bin averages, with a ± s.e. band; a
@@ -425,12 +435,7 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
         ax.set_ylabel(key.split("/")[-1].replace("_", " "))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    for ax in axes.flat[len(tasks):]:
-        ax.axis("off")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_panels(fig, axes, len(tasks), title, path)
 
 
 def plot_scores(scores: dict, tasks: list, methods: list, title: str, key: str, path: str) -> dict:
@@ -457,12 +462,7 @@ def plot_scores(scores: dict, tasks: list, methods: list, title: str, key: str, 
     for ax in axes[:, 0]:  # the shared labels, on each row of panels
         ax.tick_params(axis="y", labelsize=7)
     axes[0, 0].set_ylim(-len(methods) + 0.5, 0.5)
-    for ax in axes.flat[len(tasks):]:
-        ax.axis("off")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_panels(fig, axes, len(tasks), title, path)
     return rows
 
 
