@@ -383,6 +383,24 @@ def levels_table(runs: list, tasks: list, methods: list, key: str, levels: dict,
     return lines
 
 
+def task_panels(count: int, panel_width: float, panel_height: float, extra_width: float = 0.0, **subplots_kw):
+    """A figure with one panel per task, three to a row: (fig, axes (rows, cols))."""
+    cols = min(3, count)
+    rows = (count + cols - 1) // cols
+    return plt.subplots(rows, cols, figsize=(panel_width * cols + extra_width, panel_height * rows), squeeze=False,
+                        **subplots_kw)
+
+
+def method_colour(methods: list, method: str) -> str:
+    """A method keeps its colour in every panel and in both figures."""
+    return f"C{methods.index(method) % 10}"
+
+
+def metric_label(key: str) -> str:
+    """charts/episodic_return -> episodic return."""
+    return key.split("/")[-1].replace("_", " ")
+
+
 def save_panels(fig, axes, used: int, title: str, path: str):
     """A figure of task panels to a PNG: the panels past the first `used` blanked, the title on top."""
     for ax in axes.flat[used:]:
@@ -397,9 +415,7 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
                 reference: dict = None, levels: dict = None):
     """One panel per task; per method, the mean over seeds of each run's bin averages, with a ± s.e. band; a
     reference curve of the task, if given, as a grey mean ± std band; fixed policies' levels as dotted lines."""
-    cols = min(3, len(tasks))
-    rows = (len(tasks) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.5 * rows), squeeze=False)
+    fig, axes = task_panels(len(tasks), 5, 3.5)
     for ax, task in zip(axes.flat, tasks):
         edges = np.linspace(0, max(r["steps"].max() for r in runs if r["task"] == task), bins + 1)
         centres = (edges[:-1] + edges[1:]) / 2
@@ -418,7 +434,7 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
                 mean = np.nanmean(curves, 0)
                 se = np.where(n > 1, np.nanstd(curves, 0, ddof=1) / np.sqrt(np.maximum(n, 1)), 0.0)
             keep = n > 0  # bins where some run ended an episode: joined by the line
-            colour = f"C{methods.index(method) % 10}"  # a method keeps its colour in every panel
+            colour = method_colour(methods, method)
             ax.plot(centres[keep], mean[keep], color=colour, label=f"{method_name(method)} ({len(curves)})",
                     marker="." if keep.sum() < 20 else None)
             ax.fill_between(centres[keep], (mean - se)[keep], (mean + se)[keep], color=colour, alpha=0.2)
@@ -432,7 +448,7 @@ def plot_curves(runs: list, tasks: list, methods: list, key: str, bins: int, tit
             ax.axhline(value, color=f"{0.6 * (i % 2)}", linestyle=":", label=f"{policy} policy ({episodes} episodes)")
         ax.set_title(task, fontsize=9)
         ax.set_xlabel("environment steps")
-        ax.set_ylabel(key.split("/")[-1].replace("_", " "))
+        ax.set_ylabel(metric_label(key))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     save_panels(fig, axes, len(tasks), title, path)
@@ -443,19 +459,16 @@ def plot_scores(scores: dict, tasks: list, methods: list, title: str, key: str, 
     seed's run average and the mean ± s.e. over seeds as a bar, so that a row's seeds can be read against every
     other row's. Returns what each panel drew: task -> [(method, its seeds' scores)]."""
     rows = {t: [(m, scores[(t, m)]) for m in methods if (t, m) in scores] for t in tasks}
-    cols = min(3, len(tasks))
-    grid = (len(tasks) + cols - 1) // cols
-    fig, axes = plt.subplots(grid, cols, figsize=(4.5 * cols + 2.5, (0.3 * len(methods) + 1.2) * grid),
-                             squeeze=False, sharey=True)
+    fig, axes = task_panels(len(tasks), 4.5, 0.3 * len(methods) + 1.2, extra_width=2.5, sharey=True)
     for ax, task in zip(axes.flat, tasks):
         for method, values in rows[task]:
-            y, colour = -methods.index(method), f"C{methods.index(method) % 10}"  # the curves' colour of the method
+            y, colour = -methods.index(method), method_colour(methods, method)
             mean, se = mean_se(values)
             ax.errorbar(mean, y, xerr=se if len(values) > 1 else None, fmt="|", color=colour, markersize=14,
                         capsize=3)
             ax.plot(values, [y] * len(values), "o", color=colour, alpha=0.6, markersize=4)
         ax.set_title(task, fontsize=9)
-        ax.set_xlabel(key.split("/")[-1].replace("_", " ") + " (average over the run)", fontsize=8)
+        ax.set_xlabel(metric_label(key) + " (average over the run)", fontsize=8)
         ax.grid(alpha=0.3, axis="x")
     axes[0, 0].set_yticks([-i for i in range(len(methods))])
     axes[0, 0].set_yticklabels([method_name(m).replace("`", "") for m in methods])
