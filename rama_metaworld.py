@@ -38,6 +38,7 @@ import dataclasses
 import fcntl
 import functools
 import glob
+import importlib.util
 import json
 import multiprocessing
 import pickle
@@ -291,15 +292,12 @@ def check_args(args: Args) -> None:
                 "prefill_episodes", "prior_max_episodes", "address_batch", "address_units", "address_cnn_depth",
                 "address_refresh", "address_candidates", "address_plot_every", "model_lr", "actor_lr", "value_lr",
                 "address_lr", "grad_clip", "address_grad_clip", "address_logit_scale", "num_tasks", "num_envs"]
-    for name in positive:
-        if not getattr(args, name) > 0:  # `not >`: NaN is refused too
+    for name in positive + ["obs_std", "address_adam_eps"]:  # the last two may be None (a default)
+        if getattr(args, name) is not None and not getattr(args, name) > 0:  # `not >`: NaN is refused too
             raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
     for name in ["eval_episodes", "address_imagine_starts", "log_interval_seconds"]:
         if not getattr(args, name) >= 0:  # NaN is refused too
             raise UsageError(f"{flag(name)} must be >= 0 (got {getattr(args, name)})")
-    for name in ["obs_std", "address_adam_eps"]:
-        if getattr(args, name) is not None and not getattr(args, name) > 0:
-            raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
     if not 0.0 <= args.address_weight_decay < 1.0:
         raise UsageError(f"--address-weight-decay must be in [0, 1) (got {args.address_weight_decay})")
     if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
@@ -314,11 +312,8 @@ def check_args(args: Args) -> None:
         raise UsageError(f"--image-size must be >= 46 for the four stride-2 convs (got {args.image_size})")
     if not task_list(args):
         raise UsageError("--task-sequence names no task")
-    if args.track:
-        try:
-            import wandb  # noqa: F401
-        except ImportError:
-            raise UsageError("--track needs wandb: pip install wandb") from None
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise UsageError("--track needs wandb: pip install wandb")
     if args.time_limit > 500:
         raise UsageError(f"--time-limit {args.time_limit}: Meta-World episodes last at most 500 steps")
     if episode_agent_steps(args) < args.seq_len:
@@ -792,25 +787,18 @@ def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_s
     return episodes
 
 
-def preprocess_obs(obs, device):
-    """numpy obs (B, T, ...) -> float torch; images uint8 (B, T, H, W, 3) -> (B, T, 3, H, W) in [-0.5, 0.5]."""
-    obs = torch.as_tensor(obs).to(device, non_blocking=True)  # uint8 crosses to the device: 4x less to copy
-    if obs.dtype == torch.uint8:
-        return obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5)
-    return obs.float()
-
-
 def to_device(batch: dict, device) -> dict:
-    """numpy (or pinned torch) chunks (B, T, ...) -> torch tensors on device as stored (images uint8)."""
+    """numpy (or pinned torch) chunks (B, T, ...) -> torch tensors on device as stored (images uint8: 4x less to
+    copy than floats)."""
     return {k: torch.as_tensor(v).to(device, non_blocking=True) for k, v in batch.items()}
 
 
 def preprocess(batch: dict) -> dict:
-    """Chunks on the device as stored -> what the networks read: float obs (images (B, T, 3, H, W) in [-0.5, 0.5]),
-    float actions and rewards; terminal stays bool."""
-    out = dict(batch, obs=preprocess_obs(batch["obs"], batch["obs"].device))
-    out["action"], out["reward"] = out["action"].float(), out["reward"].float()
-    return out
+    """Chunks on the device as stored -> what the networks read: images uint8 (B, T, H, W, 3) -> float (B, T, 3, H, W)
+    in [-0.5, 0.5]; state obs, actions and rewards float; terminal stays bool."""
+    obs = batch["obs"]
+    obs = obs.permute(0, 1, 4, 2, 3).float().div_(255.0).sub_(0.5) if obs.dtype == torch.uint8 else obs.float()
+    return {k: obs if k == "obs" else v if k == "terminal" else v.float() for k, v in batch.items()}
 
 
 def to_torch(batch: dict, device) -> dict:
@@ -961,7 +949,7 @@ class RSSM(nn.Module):
 
     def __init__(self, action_size, embed_size, stoch_size=30, deter_size=200, hidden_size=200):
         super().__init__()
-        self.stoch_size, self.deter_size = stoch_size, deter_size
+        self.stoch_size, self.deter_size, self.feat_size = stoch_size, deter_size, stoch_size + deter_size
         self.img_in = nn.Linear(stoch_size + action_size, hidden_size)
         self.gru = nn.GRUCell(hidden_size, deter_size)
         self.img_out = nn.Sequential(nn.Linear(deter_size, hidden_size), nn.ELU(), nn.Linear(hidden_size, 2 * stoch_size))
@@ -969,10 +957,6 @@ class RSSM(nn.Module):
         self.obs_deter = nn.Linear(deter_size, hidden_size)
         self.obs_embed = nn.Linear(embed_size, hidden_size, bias=False)
         self.obs_out = nn.Linear(hidden_size, 2 * stoch_size)
-
-    @property
-    def feat_size(self):
-        return self.stoch_size + self.deter_size
 
     def initial(self, batch: int, device) -> dict:
         zeros = lambda n: torch.zeros(batch, n, device=device)  # noqa: E731
@@ -1350,9 +1334,8 @@ class Addressing:
         # is meant to move f(M_j) only (Section 4.3), yet the shared weights move f(x) with it (README, deviations)
         self.x_net = self.net if args.address_x_net == "shared" else copy.deepcopy(self.net).requires_grad_(False)
         self.method, self.device, self.logit_scale = args.method, device, args.address_logit_scale
-        self.stop_grad_x = args.address_stop_grad_x
-        if self.stop_grad_x is None:
-            self.stop_grad_x = args.method in ("rrama", "rbrama")
+        self.stop_grad_x = args.method in ("rrama", "rbrama") if args.address_stop_grad_x is None \
+            else args.address_stop_grad_x
         self.generator = torch.Generator(device).manual_seed(args.seed)  # the picks' Gumbel noise
         self.candidates = None  # (episode ids, starts) of the chunks embedded in D (or of the last fresh pool)
         self.candidate_rewards = None  # (N_c,) their stored reward sums, for the logs and the picture
@@ -1680,7 +1663,7 @@ class Policy:
         """obs (N, ...) -> actions (N, A). explore_noise None = evaluation (the mode); else a sample plus Gaussian
         noise of that std."""
         wm = self.agent.wm
-        embed = wm.encoder(preprocess_obs(obs[:, None], self.device))[:, 0]  # (N, E)
+        embed = wm.encoder(preprocess(to_device({"obs": obs[:, None]}, self.device))["obs"])[:, 0]  # (N, E)
         state = self.state if self.state is not None else wm.rssm.initial(len(obs), self.device)
         self.state = wm.rssm.obs_step(wm.rssm.img_step(state, self.action), wm.rssm.obs_embed(embed))
         feat = wm.rssm.feat(self.state)
