@@ -19,6 +19,14 @@
 #   e2e-eager, e2e-graphs   a real walker-walk run from pixels (20k env steps): env steps/s end to end (EGL)
 #   share      1, 2 and 4 state-mode runs and 2 pixel runs side by side: env steps/s in all, GPU memory per run
 #   pixels-start, pixels-poll, pixels-pack   issue 40's walker-stand seeds (sweeps/pixels_dreamer.toml) across calls
+#   sweep-start, sweep-poll, sweep-pack      any spec the same way (issue 41: SPEC=sweeps/walker_tables.toml), with
+#              ONLY (sweep.py --only patterns), WORKERS (runs side by side) and FLAGS (added to the spec's); the poll
+#              returns as soon as the sweep has ended, and the pack brings back results/<experiment>/ as sweep.py
+#              left it (args.json, metrics.jsonl and the priors' kept episodes) and every run's log tail. Checked on
+#              a CPU with sweeps/smoke.toml (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec)
+# Issue 41 (walker tables), planned, not yet run: first the two Ms and the pilot, then the tables in the next calls:
+#   run(command="BUDGET=585 SPEC=sweeps/walker_tables.toml ONLY='prior_*' WORKERS=2 \
+#       bash benchmarks/gpu_session.sh sweep-start sweep-poll sweep-pack", carry=[".gpu"])
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
 mkdir -p "$OUT"
@@ -28,12 +36,13 @@ BENCH="python3 benchmarks/bench_update.py --device cuda --no-collection --method
 # Every stage ends by a deadline: BUDGET seconds after the start (default 560, inside the device tool's 600 s per
 # call), so a slow stage leaves the later ones their time and $OUT always comes back with what was measured.
 T0=$(date +%s); BUDGET=${BUDGET:-560}
+ST=${SWEEP_TMP:-/tmp/gpu_sweep}  # the sweep stages' spec, pid and logs (kept between calls on a warm machine)
 left() { echo $((T0 + BUDGET - $(date +%s))); }
 cap() { local l; l=$(left); [ "$l" -lt "$1" ] && echo "$l" || echo "$1"; }  # a stage's own limit, or less if late
 
 # set-up (once per machine): Python packages from .gpu/wheels into /tmp/site; EGL libraries from .gpu/debs for MuJoCo
 export PYTHONPATH=/tmp/site MUJOCO_GL=egl PYTHONUNBUFFERED=1
-if [ ! -d /tmp/site/tyro ]; then
+if [ ! -d /tmp/site/tyro ] && [ -d .gpu ]; then  # (no .gpu: a machine with the packages already, e.g. a CPU check)
   python3 -m pip install -q --no-index --no-deps --target /tmp/site .gpu/wheels/*.whl 2>&1 | tail -2
   for f in .gpu/debs/*.deb; do dpkg -x "$f" / 2>/dev/null; done
   ldconfig 2>/dev/null
@@ -114,8 +123,26 @@ for stage in "$@"; do
       nvidia-smi > "$OUT/pixels_dreamer/nvidia-smi.txt" 2>&1
       tar czf "$OUT/pixels_dreamer.tgz" -C "$OUT" pixels_dreamer && rm -rf "$OUT/pixels_dreamer" \
         && tar tzvf "$OUT/pixels_dreamer.tgz" ;;
+    sweep-start)  # detached, like pixels-start: the runs go on between calls (their bookkeeping in $ST)
+      spec=${SPEC:?sweep-start needs SPEC=sweeps/<name>.toml}; mkdir -p "$ST"
+      sed "s|^flags = \"\"\"|flags = \"\"\"${FLAGS:-} |" "$spec" > "$ST/spec.toml"
+      grep -A1 '^flags = """' "$ST/spec.toml" | tee "$OUT/$(basename "$spec" .toml)-spec.txt"
+      set -f; setsid nohup python3 sweep.py "$ST/spec.toml" --workers "${WORKERS:-4}" ${ONLY:+--only $ONLY} \
+        > "$ST/sweep.log" 2>&1 < /dev/null & set +f
+      echo $! > "$ST/pid"; sleep 5; cat "$ST/sweep.log" ;;
+    sweep-poll)  # until the sweep has ended or 45 s of the call are left: each unfinished run's last line, every minute
+      exp=$(sed -n 's/^experiment = "\(.*\)"/\1/p' "$ST/spec.toml")
+      while [ "$(left)" -gt 45 ] && kill -0 "$(cat "$ST/pid")" 2>/dev/null; do
+        sleep "$(cap 60)"; echo "--- $(date -u +%T)"
+        for f in runs/"$exp"/*/log.txt; do [ -e "${f%log.txt}DONE" ] || echo "$f: $(tail -n 1 "$f")"; done
+      done; cat "$ST/sweep.log" ;;
+    sweep-pack)  # results/<experiment>/ as sweep.py left it, with the sweep's log and each run's log tail beside it
+      exp=$(sed -n 's/^experiment = "\(.*\)"/\1/p' "$ST/spec.toml"); mkdir -p "$ST/logs/$exp" "results/$exp"
+      cp "$ST/sweep.log" "$ST/logs/$exp/sweep.txt"
+      for run in runs/"$exp"/*/; do tail -n 40 "$run/log.txt" > "$ST/logs/$exp/$(basename "$run").txt"; done
+      tar czf "$OUT/$exp.tgz" "results/$exp" -C "$ST" logs && tar tzf "$OUT/$exp.tgz" | tail -n 12 ;;
     *) echo "unknown stage $stage (check, graphs, precision, profile, e2e-eager, e2e-graphs, pixels-start," \
-            "pixels-poll, pixels-pack, share)" ;;
+            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share)" ;;
   esac
 done
 # the device tool brings back at most 8 files: past 7, everything goes back as one archive

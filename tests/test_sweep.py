@@ -269,6 +269,33 @@ def test_local_sweep_resumes_a_killed_run_then_skips_done_runs(tmp_path):
     assert sorted(os.listdir(runs[0].results)) == ["args.json", "metrics.jsonl"]
 
 
+@pytest.mark.slow
+def test_gpu_session_sweep_stages_run_a_spec(tmp_path):
+    """benchmarks/gpu_session.sh's sweep-start, sweep-poll and sweep-pack (issue 41's GPU calls) on a CPU: the tiny
+    grid runs detached, the poll returns when it has ended (not at the call's deadline), and the archive holds
+    results/<experiment>/ as sweep.py wrote it, with the sweep's log and each run's log tail."""
+    import tarfile
+
+    for name in ("sweep.py", "rama_dreamer.py", "kitchen_env.py", "report.py", "benchmarks/gpu_session.sh"):
+        os.makedirs(tmp_path / os.path.dirname(name), exist_ok=True)
+        shutil.copy(os.path.join(ROOT, name), tmp_path / name)
+    (tmp_path / "sweeps").mkdir()
+    (tmp_path / "sweeps" / "tiny.toml").write_text(TINY_SPEC)
+    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"],
+               OUT=str(tmp_path / "out"), SWEEP_TMP=str(tmp_path / "st"), SPEC="sweeps/tiny.toml", WORKERS="1",
+               BUDGET="400", OMP_NUM_THREADS="1")
+    start = time.time()
+    proc = subprocess.run(["bash", "benchmarks/gpu_session.sh", "sweep-start", "sweep-poll", "sweep-pack"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=420)
+    assert time.time() - start < 300, proc.stdout[-2000:]  # the poll ended with the sweep, not at BUDGET - 45 s
+    assert "[2/2] balance__uniform__s1: finished in" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
+    with tarfile.open(tmp_path / "out" / "tiny.tgz") as archive:
+        names = set(archive.getnames())
+    for run in ("balance__dreamer__s1", "balance__uniform__s1"):
+        assert {f"results/tiny/{run}/args.json", f"results/tiny/{run}/metrics.jsonl", f"logs/tiny/{run}.txt"} <= names
+    assert "logs/tiny/sweep.txt" in names
+
+
 def test_dry_run_prints_commands_and_states(tmp_path):
     spec = write_spec(tmp_path, TINY_SPEC)
     out = sweep_cli(tmp_path, spec, "--dry-run").stdout
