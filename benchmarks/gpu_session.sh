@@ -23,7 +23,8 @@
 #              ONLY (sweep.py --only patterns), WORKERS (runs side by side) and FLAGS (added to the spec's); the poll
 #              returns as soon as the sweep has ended, and the pack brings back results/<experiment>/ as sweep.py
 #              left it (args.json, metrics.jsonl and the priors' kept episodes) and every run's log tail. Checked on
-#              a CPU with sweeps/smoke.toml (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec)
+#              a CPU with a tiny grid (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec); pixels-start and -poll are
+#              the same code on sweeps/pixels_dreamer.toml
 # Issue 41 (walker tables), planned, not yet run: first the two Ms and the pilot, then the tables in the next calls:
 #   run(command="BUDGET=585 SPEC=sweeps/walker_tables.toml ONLY='prior_*' WORKERS=2 \
 #       bash benchmarks/gpu_session.sh sweep-start sweep-poll sweep-pack", carry=[".gpu"])
@@ -39,6 +40,15 @@ T0=$(date +%s); BUDGET=${BUDGET:-560}
 ST=${SWEEP_TMP:-/tmp/gpu_sweep}  # the sweep stages' spec, pid and logs (kept between calls on a warm machine)
 left() { echo $((T0 + BUDGET - $(date +%s))); }
 cap() { local l; l=$(left); [ "$l" -lt "$1" ] && echo "$l" || echo "$1"; }  # a stage's own limit, or less if late
+
+# a sweep spec (its flags extended) started detached, so that its runs outlive the call: spec, --only patterns
+# (space-separated, not globbed here), workers, flags to add
+start_sweep() {
+  mkdir -p "$ST"; sed "s|^flags = \"\"\"|flags = \"\"\"$4 |" "$1" > "$ST/spec.toml"
+  grep -A1 '^flags = """' "$ST/spec.toml" | tee "$OUT/$(basename "$1" .toml)-spec.txt"
+  set -f; setsid nohup python3 sweep.py "$ST/spec.toml" --workers "$3" ${2:+--only $2} > "$ST/sweep.log" 2>&1 < /dev/null &
+  set +f; echo $! > "$ST/pid"; sleep 5; cat "$ST/sweep.log"
+}
 
 # set-up (once per machine): Python packages from .gpu/wheels into /tmp/site; EGL libraries from .gpu/debs for MuJoCo
 export PYTHONPATH=/tmp/site MUJOCO_GL=egl PYTHONUNBUFFERED=1
@@ -103,15 +113,7 @@ for stage in "$@"; do
       [ "${MPS:-0}" = 1 ] && { echo quit | nvidia-cuda-mps-control; } ;;
     pixels-start)  # issue 40, detached: the runs go on while later calls hold the machine (within 30 s of each other)
       # PIXEL_ONLY picks the runs, PIXEL_FLAGS adds flags to the spec's (e.g. --precision bf16; graphs are the CUDA default)
-      sed "s|^flags = \"\"\"|flags = \"\"\"${PIXEL_FLAGS:-} |" sweeps/pixels_dreamer.toml > /tmp/pixels.toml
-      grep -A1 '^flags = """' /tmp/pixels.toml | tee "$OUT/pixels-spec.txt"
-      set -f; setsid nohup python3 sweep.py /tmp/pixels.toml --workers "${PIXEL_WORKERS:-3}" --only ${PIXEL_ONLY:-walker_stand__*} \
-        > /tmp/pixels.log 2>&1 < /dev/null & set +f
-      sleep 5; cat /tmp/pixels.log ;;
-    pixels-poll)  # wait until 45 s of the call are left, printing where the runs are every 2 minutes
-      while [ "$(left)" -gt 45 ]; do
-        sleep "$(cap 120)"; echo "--- $(date -u +%T)"; for f in runs/pixels_dreamer/*/log.txt; do echo "$f: $(tail -n 1 "$f")"; done
-      done; cat /tmp/pixels.log ;;
+      start_sweep sweeps/pixels_dreamer.toml "${PIXEL_ONLY:-walker_stand__*}" "${PIXEL_WORKERS:-3}" "${PIXEL_FLAGS:-}" ;;
     pixels-pack)  # every run's args.json, metrics.jsonl, log tail and last open-loop GIF, as results/ holds them
       for run in runs/pixels_dreamer/*/; do
         name=$(basename "$run"); mkdir -p "$OUT/pixels_dreamer/$name"
@@ -124,13 +126,8 @@ for stage in "$@"; do
       tar czf "$OUT/pixels_dreamer.tgz" -C "$OUT" pixels_dreamer && rm -rf "$OUT/pixels_dreamer" \
         && tar tzvf "$OUT/pixels_dreamer.tgz" ;;
     sweep-start)  # detached, like pixels-start: the runs go on between calls (their bookkeeping in $ST)
-      spec=${SPEC:?sweep-start needs SPEC=sweeps/<name>.toml}; mkdir -p "$ST"
-      sed "s|^flags = \"\"\"|flags = \"\"\"${FLAGS:-} |" "$spec" > "$ST/spec.toml"
-      grep -A1 '^flags = """' "$ST/spec.toml" | tee "$OUT/$(basename "$spec" .toml)-spec.txt"
-      set -f; setsid nohup python3 sweep.py "$ST/spec.toml" --workers "${WORKERS:-4}" ${ONLY:+--only $ONLY} \
-        > "$ST/sweep.log" 2>&1 < /dev/null & set +f
-      echo $! > "$ST/pid"; sleep 5; cat "$ST/sweep.log" ;;
-    sweep-poll)  # until the sweep has ended or 45 s of the call are left: each unfinished run's last line, every minute
+      start_sweep "${SPEC:?sweep-start needs SPEC=sweeps/<name>.toml}" "${ONLY:-}" "${WORKERS:-4}" "${FLAGS:-}" ;;
+    pixels-poll|sweep-poll)  # until the sweep has ended or 45 s of the call are left: each unfinished run's last line, every minute
       exp=$(sed -n 's/^experiment = "\(.*\)"/\1/p' "$ST/spec.toml")
       while [ "$(left)" -gt 45 ] && kill -0 "$(cat "$ST/pid")" 2>/dev/null; do
         sleep "$(cap 60)"; echo "--- $(date -u +%T)"
