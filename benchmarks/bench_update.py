@@ -14,6 +14,7 @@ Run (from the repository root):
     python benchmarks/bench_update.py --device cuda --sizes paper --updates 5 --precision fp32
     python benchmarks/bench_update.py --device cpu --sizes paper --updates 2 --no-collection
     python benchmarks/bench_update.py --device cuda --profile          # the operators of one paper-size update
+    python benchmarks/bench_update.py --device cpu --count-ops --sizes small --obs-type state --mlp-units 200
     python benchmarks/bench_update.py --device cpu --ab-flag channels-last --methods dreamer --updates 6
     python benchmarks/bench_update.py --device cuda --ab-flag cuda-graph --sizes paper --updates 20 \
         --json results/benchmarks/DATE-h100-graphs.json                # CUDA graphs on/off, paired, as JSON too
@@ -21,6 +22,7 @@ Run (from the repository root):
     python benchmarks/bench_update.py --device cpu --compare-to /tmp/old.py --sizes paper --methods dreamer
     python benchmarks/bench_update.py --script rama_metaworld --env-id metaworld/push --num-envs 4
 """
+import collections
 import dataclasses
 import importlib
 import importlib.util
@@ -63,6 +65,9 @@ class Options:
     """sizes to time: paper (n=50, L=50), small (n=16, L=50)"""
     profile: bool = False
     """instead of the timings: profile one paper-size `dreamer` update and print the operators that take the time"""
+    count_ops: bool = False
+    """instead of the timings: count the operators one update of each method dispatches (views excluded), at the first
+    of --sizes: on a GPU each is about one kernel, so a graphed update's time is about their number x a few µs"""
     collection: bool = True
     """also time collection (env steps per second, 1 env and --num-envs envs, on --env-id)"""
     ab_flag: Optional[str] = None
@@ -195,6 +200,43 @@ def profile_update(S, options: Options, args, obs_shape, action_size: int, repla
             torch.cuda.synchronize()
     print(prof.key_averages().table(sort_by="self_cuda_time_total" if cuda else "self_cpu_time_total", row_limit=25,
                                     max_name_column_width=40), flush=True)
+
+
+def count_update_ops(S, options: Options, args, obs_shape, action_size: int, replay, multitask, rng,
+                     device: torch.device) -> None:
+    """Operators dispatched by one update per method (after warm-up updates), views excluded, and the most frequent.
+    A CPU count stands in for the kernels of a CUDA update, with known differences: Adam is set to its multi-tensor
+    (foreach) step here, as on CUDA, but a GRU stays ~16 operators a step on a CPU, where CUDA fuses an nn.GRUCell step
+    into 3 kernels and runs f_φ's nn.GRU over a whole chunk in cuDNN (so the RAMa methods' counts run high here)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.ops = collections.Counter()
+
+        def __torch_dispatch__(self, func, types, func_args=(), kwargs=None):
+            if not func.is_view:
+                self.ops[func.__name__.split(".")[0]] += 1
+            return func(*func_args, **(kwargs or {}))
+
+    n, length = SIZES[options.sizes[0]]
+    for method in options.methods:
+        setup = method_setup(S, args, method, n, length, obs_shape, action_size, device)
+        for opt in list(setup[1].optimizers().values()) + ([setup[2].opt] if setup[2] else []):
+            for group in opt.param_groups:
+                group["foreach"] = True
+        warmup = warmup_updates(options, args)
+        batches = S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(warmup + 1)
+        for i in range(warmup):
+            one_update(S, setup, next(batches)[0], multitask, rng, device, i)
+        with Count() as count:
+            one_update(S, setup, next(batches)[0], multitask, rng, device, warmup)
+        total = sum(count.ops.values())
+        ROWS.append({"device": device.type, "size": options.sizes[0], "method": method, "operators": total,
+                     "by_operator": dict(count.ops.most_common()), "flags": run_flags(args)})
+        print(f"{device.type:<6} {options.sizes[0]:<6} {method:<8} {total:>6} operators | most frequent: "
+              + ", ".join(f"{k} {v}" for k, v in count.ops.most_common(8)), flush=True)
 
 
 def time_updates(S, options: Options, args, device: torch.device, obs_shape, action_size: int, replay, multitask,
@@ -334,6 +376,9 @@ def run(S, options: Options, args, devices: list) -> None:
     if options.ab_flag or options.compare_to:
         return paired_timing(S, options, args, torch.device(devices[-1]), obs_shape, action_size, replay, multitask,
                              rng)
+    if options.count_ops:
+        return count_update_ops(S, options, args, obs_shape, action_size, replay, multitask, rng,
+                                torch.device(devices[-1]))
     if options.profile:
         return profile_update(S, options, args, obs_shape, action_size, replay, multitask, rng,
                               torch.device(devices[-1]))

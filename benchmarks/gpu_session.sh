@@ -16,6 +16,8 @@
 #   graphs     --cuda-graph on/off, paired, every method, fp32: paper size (pixels, 50x50) and state mode (16x50)
 #   precision  the same with --precision bf16, and fp32 with TF32 matrix products (cuBLAS override)
 #   profile    one paper-size Dreamer update's operators, eager and graphed (kernel time against wall time)
+#   compile    benchmarks/compiled_rssm.py (torch.compile on the RSSM's steps, or its whole loops) against the script,
+#              both graphed, paired: state mode for dreamer, rrama and vrama, and paper size for dreamer
 #   e2e-eager, e2e-graphs   a real walker-walk run from pixels (20k env steps): env steps/s end to end (EGL)
 #   share      1, 2 and 4 state-mode runs and 2 pixel runs side by side: env steps/s in all, GPU memory per run
 #   pixels-start, pixels-poll, pixels-pack   issue 40's walker-stand seeds (sweeps/pixels_dreamer.toml) across calls
@@ -25,6 +27,8 @@
 #              left it (args.json, metrics.jsonl and the priors' kept episodes) and every run's log tail. Checked on
 #              a CPU with a tiny grid (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec); pixels-start and -poll are
 #              the same code on sweeps/pixels_dreamer.toml
+# Issue 39's next step, planned, not yet run (first call of a session, beside the share measurement):
+#   run(command="BUDGET=585 bash benchmarks/gpu_session.sh compile", carry=[".gpu"])
 # Issue 41 (walker tables), planned, not yet run: first the two Ms and the pilot, then the tables in the next calls:
 #   run(command="BUDGET=585 SPEC=sweeps/walker_tables.toml ONLY='prior_*' WORKERS=2 \
 #       bash benchmarks/gpu_session.sh sweep-start sweep-poll sweep-pack", carry=[".gpu"])
@@ -82,6 +86,17 @@ for stage in "$@"; do
         | tee "$OUT/profile-graphs.txt" | tail -30
       timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --profile 2>&1 \
         | tee "$OUT/profile-eager.txt" | tail -30 ;;
+    compile)  # issue 39's next lever: torch.compile's fused kernels inside the graphs (benchmarks/compiled_rssm.py),
+      # paired against the script, state mode (COMPILE_MODES: steps and/or loops; loops compiles for minutes)
+      for mode in ${COMPILE_MODES:-steps loops}; do
+        COMPILE=$mode timeout "$(cap 240)" python3 benchmarks/bench_update.py --device cuda --no-collection \
+          --cuda-graph True --compare-to benchmarks/compiled_rssm.py --methods dreamer rrama vrama --sizes small \
+          --obs-type state --mlp-units 200 --updates 20 --json "$OUT/compile-$mode-state.json" 2>&1 \
+          | grep -v -i warn | tee "$OUT/compile-$mode-state.txt"
+      done
+      COMPILE=steps timeout "$(cap 150)" python3 benchmarks/bench_update.py --device cuda --no-collection \
+        --cuda-graph True --compare-to benchmarks/compiled_rssm.py --methods dreamer --sizes paper --updates 10 \
+        --json "$OUT/compile-steps-paper.json" 2>&1 | grep -v -i warn | tee "$OUT/compile-steps-paper.txt" ;;
     e2e-eager|e2e-graphs)  # one per call: the eager run takes about 8 of a call's 10 minutes
       flag=$([ "$stage" = e2e-graphs ] && echo True || echo False)
       timeout "$(( $(left) - 10 ))" python3 rama_dreamer.py --env-id dmc/walker-walk --total-steps 20000 --eval-every 20000 \
@@ -139,7 +154,7 @@ for stage in "$@"; do
       for run in runs/"$exp"/*/; do tail -n 40 "$run/log.txt" > "$ST/logs/$exp/$(basename "$run").txt"; done
       tar czf "$OUT/$exp.tgz" "results/$exp" -C "$ST" logs && tar tzf "$OUT/$exp.tgz" | tail -n 12 ;;
     *) echo "unknown stage $stage (check, graphs, precision, profile, e2e-eager, e2e-graphs, pixels-start," \
-            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share)" ;;
+            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share, compile)" ;;
   esac
 done
 # the device tool brings back at most 8 files: past 7, everything goes back as one archive

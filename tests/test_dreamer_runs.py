@@ -237,3 +237,22 @@ def test_benchmark_ab_flag_times_on_against_off_in_pairs(tmp_path):
                      timeout=60)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
     assert bad.stderr.startswith("error: --ab-flag horizon: not a boolean flag of rama_dreamer"), bad.stderr
+
+
+@pytest.mark.slow
+def test_benchmark_counts_the_operators_of_an_update(tmp_path):
+    """--count-ops: one update's operators per method, views excluded; a longer imagination dispatches more of them."""
+    tiny = ["--obs-type", "state", "--sizes", "small", "--device", "cpu", "--no-collection", "--deter-size", "8",
+            "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8", "--count-ops"]
+    counts = {}
+    for horizon in (3, 4):
+        out = tmp_path / f"ops{horizon}.json"
+        proc = bench(*tiny, "--horizon", str(horizon), "--methods", "dreamer", "vrama", "--json", str(out))
+        rows = json.load(open(out))["rows"]
+        assert [(r["method"], r["size"]) for r in rows] == [("dreamer", "small"), ("vrama", "small")]
+        assert all(r["operators"] == sum(r["by_operator"].values()) and r["by_operator"]["mm"] > 0 for r in rows)
+        assert all("view" not in r["by_operator"] and "t" not in r["by_operator"] for r in rows)  # views excluded
+        assert f"dreamer  {rows[0]['operators']:>6} operators" in proc.stdout
+        counts[horizon] = {r["method"]: r["operators"] for r in rows}
+    assert counts[3]["dreamer"] < counts[3]["vrama"]  # VRAMa's addressing step imagines as well
+    assert counts[3]["dreamer"] < counts[4]["dreamer"]  # one more imagined step (and its backward pass)

@@ -1,6 +1,7 @@
 """The fast paths compute what the plain path computes: same losses and gradients on a fixed batch (within a stated
 tolerance), same batches with and without prefetch, same episodes with and without parallel envs."""
 import copy
+import os
 import dataclasses
 
 import numpy as np
@@ -245,3 +246,49 @@ def test_decoder_first_layer_as_a_matrix_product_equals_the_transposed_conv():
     g, g_ref = (torch.autograd.grad(out.square().sum(), params) for out in (y, plain))
     for a, b in zip(g, g_ref):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-5)
+
+
+def compiled_variant(monkeypatch, mode: str):
+    """benchmarks/compiled_rssm.py as bench_update.py's --compare-to loads it: a copy of rama_dreamer.py, compiled."""
+    import importlib.util
+
+    monkeypatch.setenv("COMPILE", mode)
+    spec = importlib.util.spec_from_file_location(f"compiled_{mode}", os.path.join("benchmarks", "compiled_rssm.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode,method", [("steps", "dreamer"), ("steps", "vrama"), ("loops", "rrama")])
+def test_the_compiled_rssm_variant_gives_the_scripts_updates(monkeypatch, mode, method):
+    """torch.compile fuses kernels and changes nothing else: with the same seeds, three updates of the compiled copy
+    give the script's losses and parameters to fp32 rounding (its random draws are torch's own), every method's
+    RSSM use included (the filter, imagination under Freeze, VRAMa's imagination from the picks)."""
+    compiled = compiled_variant(monkeypatch, mode)
+    assert compiled.RSSM is not rd.RSSM and compiled.RSSM.img_step is not rd.RSSM.img_step  # a copy: rd untouched
+    small = dict(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=0.0,
+                 obs_std=1.0, batch_size=6, seq_len=5, address_units=8, address_batch=7, method=method)
+    results = {}
+    for module in (rd, compiled):
+        args = module.resolve_defaults(module.Args(**small))
+        rng = np.random.default_rng(0)
+        replay = synthetic_replay((3,), 2, 3, 20, rng, task="now")
+        multitask = synthetic_replay((3,), 2, 3, 20, rng, task="before")
+        torch.manual_seed(1)
+        agent = module.Agent((3,), 2, args)
+        addressing = module.Addressing((3,), 2, args, "cpu") if method in module.ADDRESSED_METHODS else None
+        torch.manual_seed(2)
+        losses = []
+        for i in range(3):
+            x = module.to_torch(replay.sample(args.batch_size, args.seq_len, rng), "cpu")
+            plan = module.plan_update(args, multitask, addressing, rng, "cpu", "now", i)
+            out = module.update(agent, addressing, x, plan, args)
+            losses.append({k: float(v.detach()) for k, v in out["metrics"].items() if k.startswith(("losses/", "addressing/l"))})
+        results[module] = losses, agent.state_dict()
+    (eager_losses, eager_params), (compiled_losses, compiled_params) = results[rd], results[compiled]
+    for eager, fused in zip(eager_losses, compiled_losses):
+        assert eager.keys() == fused.keys() and all(fused[k] == pytest.approx(eager[k], rel=1e-4, abs=1e-5)
+                                                    for k in eager), (eager, fused)
+    for k, v in eager_params.items():
+        assert torch.allclose(compiled_params[k], v, rtol=1e-4, atol=1e-5), k
