@@ -851,36 +851,47 @@ class RSSM(nn.Module):
     def feat(state: dict):
         return torch.cat([state["stoch"], state["deter"]], -1)
 
-    def _dist_params(self, x):
+    @staticmethod
+    def _gaussian(x):
+        """A layer's output (..., 2S) -> mean and std (..., S) of a diagonal Gaussian, std > 0.1."""
         mean, std = x.chunk(2, -1)
-        std = F.softplus(std) + 0.1
+        return mean, F.softplus(std) + 0.1
+
+    def _dist_params(self, x):
+        mean, std = self._gaussian(x)
         return mean, std, mean + std * torch.randn_like(std)
 
+    def deter_step(self, state: dict, action):
+        """h_t = GRU(h_{t-1}, [z_{t-1}, a_t]): (B, D)."""
+        return self.gru(F.elu(self.img_in(torch.cat([state["stoch"], action], -1))), state["deter"])
+
     def img_step(self, state: dict, action) -> dict:
-        x = F.elu(self.img_in(torch.cat([state["stoch"], action], -1)))
-        deter = self.gru(x, state["deter"])
+        """The prior p(z_t | h_t) and a sample of it: one imagined step."""
+        deter = self.deter_step(state, action)
         mean, std, stoch = self._dist_params(self.img_out(deter))
         return {"mean": mean, "std": std, "stoch": stoch, "deter": deter}
 
-    def obs_step(self, prior: dict, embed_proj) -> dict:
-        """Posterior from the prior's h and the projected embedding (obs_embed(e_t), precomputed)."""
-        x = F.elu(self.obs_deter(prior["deter"]) + embed_proj)
+    def obs_step(self, deter, embed_proj) -> dict:
+        """Posterior q(z_t | h_t, e_t) from h_t and the projected embedding (obs_embed(e_t), precomputed)."""
+        x = F.elu(self.obs_deter(deter) + embed_proj)
         mean, std, stoch = self._dist_params(self.obs_out(x))
-        return {"mean": mean, "std": std, "stoch": stoch, "deter": prior["deter"]}
+        return {"mean": mean, "std": std, "stoch": stoch, "deter": deter}
 
     def observe(self, embed, action, state: Optional[dict] = None):
-        """Filter a chunk: embed (B, T, E), action (B, T, A) -> posteriors and priors, dicts of (B, T, ...)."""
+        """Filter a chunk: embed (B, T, E), action (B, T, A) -> posteriors (mean, std, stoch, deter) and priors (mean,
+        std, deter), dicts of (B, T, ...)."""
         if state is None:
             state = self.initial(embed.shape[0], embed.device)
         embed_proj = self.obs_embed(embed)  # (B, T, hidden), one matmul for the whole chunk
-        posts, priors = [], []
+        posts = []
         for t in range(embed.shape[1]):
-            prior = self.img_step(state, action[:, t])
-            state = self.obs_step(prior, embed_proj[:, t])
+            state = self.obs_step(self.deter_step(state, action[:, t]), embed_proj[:, t])
             posts.append(state)
-            priors.append(prior)
-        stack = lambda states: {k: torch.stack([s[k] for s in states], 1) for k in states[0]}  # noqa: E731
-        return stack(posts), stack(priors)
+        post = {k: torch.stack([s[k] for s in posts], 1) for k in posts[0]}
+        # the filter never reads a prior's sample, only its mean and std (the KL): the prior head runs once for all
+        # t, after the loop, instead of at every step (a sixth fewer kernels in a graphed update; the same values)
+        mean, std = self._gaussian(self.img_out(post["deter"]))  # (B, T, S) each
+        return post, {"mean": mean, "std": std, "deter": post["deter"]}
 
     def imagine_actions(self, state: dict, actions):
         """Open-loop rollout with given actions (B, T, A) -> prior states (B, T, ...)."""
@@ -1247,13 +1258,16 @@ class Addressing:
                               args.vrama_objective)
         else:
             index = gumbel_max(logits, self.generator)  # (n,)
-            bandit_reward = predicted_reward_sum(agent.wm, m_batch)  # (m,)
+            # RbRAMa filters x in the same pass as M_j (one loop of RSSM steps, not two): the sums of m + n chunks
+            rows = m_batch if self.method == "rrama" else {k: torch.cat([m_batch[k], x[k]]) for k in ("obs", "action")}
+            reward_sums = predicted_reward_sum(agent.wm, rows)  # (m,) or (m + n,)
+            bandit_reward = reward_sums[:len(m_batch["action"])]  # (m,)
             # what the objective gains: the expected bandit reward of a pick under q against a uniform pick
             metrics["addressing/bandit_reward_q"] = (logits.detach().softmax(-1) @ bandit_reward).mean()
             metrics["addressing/bandit_reward_uniform"] = bandit_reward.mean()
             advantage = bandit_reward[index]  # Eq. 2 (RRAMa)
             if self.method == "rbrama":  # Eq. 3 (RbRAMa): the predicted reward sum of x_i as the baseline
-                advantage = advantage - predicted_reward_sum(agent.wm, x)
+                advantage = advantage - reward_sums[len(bandit_reward):]
             loss = reinforce_loss(logits, index, advantage, args.address_standardize)
         grad_norm = optimizer_step(self.opt, loss, self.net.parameters(), args.address_grad_clip)
         log_q = logits.detach().log_softmax(-1)
@@ -1549,7 +1563,7 @@ class Policy:
         wm = self.agent.wm
         embed = wm.encoder(preprocess(to_device({"obs": obs[:, None]}, self.device))["obs"])[:, 0]  # (N, E)
         state = self.state if self.state is not None else wm.rssm.initial(len(obs), self.device)
-        self.state = wm.rssm.obs_step(wm.rssm.img_step(state, self.action), wm.rssm.obs_embed(embed))
+        self.state = wm.rssm.obs_step(wm.rssm.deter_step(state, self.action), wm.rssm.obs_embed(embed))
         feat = wm.rssm.feat(self.state)
         action = self.agent.actor.mode(feat, self.eval_action) if explore_noise is None else \
             self.agent.actor(feat).sample()

@@ -11,8 +11,8 @@ guards are not run at all, which is what this measures.
         --sizes small --obs-type state --mlp-units 200 --methods dreamer rrama vrama --updates 20
     COMPILE=loops python benchmarks/bench_update.py ...     # the whole filter and imagination, unrolled
 
-COMPILE=steps (the default) compiles RSSM.img_step and RSSM.obs_step: each step is a small graph, compiled once per
-shape and reused by every step. COMPILE=loops compiles RSSM.observe and `imagine` whole (50 and 15 steps unrolled:
+COMPILE=steps (the default) compiles the RSSM's step functions (deter_step and obs_step, the filter's; img_step,
+imagination's): each is a small graph, compiled once per shape and reused by every step. COMPILE=loops compiles RSSM.observe and `imagine` whole (50 and 15 steps unrolled:
 minutes to compile, and the gradient sums across steps fuse too). COMPILED_SCRIPT=rama_metaworld.py compiles the
 sibling instead. Random draws stay torch's own (inductor's `fallback_random`), so a compiled update draws the eager
 script's numbers and gives its losses up to rounding (tests/test_bench.py checks it on the CPU).
@@ -32,8 +32,8 @@ with open(SCRIPT) as f:  # the script's own code, run in this module's namespace
 
 torch._inductor.config.fallback_random = True  # torch's own random draws: the eager script's numbers
 if MODE == "steps":
-    RSSM.img_step = torch.compile(RSSM.img_step, dynamic=False)  # noqa: F821 (defined by the exec above)
-    RSSM.obs_step = torch.compile(RSSM.obs_step, dynamic=False)  # noqa: F821
+    for name in ("deter_step", "obs_step", "img_step"):  # RSSM: defined by the exec above
+        setattr(RSSM, name, torch.compile(getattr(RSSM, name), dynamic=False))  # noqa: F821
 else:
     RSSM.observe = torch.compile(RSSM.observe, dynamic=False)  # noqa: F821
     imagine = torch.compile(imagine, dynamic=False)  # noqa: F821

@@ -76,6 +76,26 @@ def _episode(length, task="t", offset=0):
             "reward": steps.astype(np.float32), "terminal": np.zeros(length + 1, bool), "task": task}
 
 
+def test_observe_is_the_step_by_step_filter_with_the_priors_after_the_loop():
+    """observe runs the prior head once after the loop: its priors equal img_step's from each previous posterior (the
+    same h_t and prior stats as a step-by-step filter), and each posterior is obs_step's from that h_t."""
+    torch.manual_seed(0)
+    rssm = rd.RSSM(action_size=2, embed_size=5, stoch_size=3, deter_size=4, hidden_size=6)
+    embed, action = torch.randn(2, 4, 5), torch.randn(2, 4, 2)  # (B, T, E), (B, T, A)
+    post, prior = rssm.observe(embed, action)
+    assert set(prior) == {"mean", "std", "deter"} and prior["mean"].shape == (2, 4, 3)
+    state = rssm.initial(2, "cpu")
+    for t in range(4):
+        step_prior = rssm.img_step(state, action[:, t])  # the prior as one imagined step computes it
+        for k in ("mean", "std", "deter"):
+            assert torch.allclose(prior[k][:, t], step_prior[k], atol=1e-6), (t, k)
+        step_post = rssm.obs_step(step_prior["deter"], rssm.obs_embed(embed[:, t]))
+        assert torch.allclose(post["mean"][:, t], step_post["mean"], atol=1e-6)
+        assert torch.allclose(post["std"][:, t], step_post["std"], atol=1e-6)
+        state = {k: post[k][:, t] for k in post}  # the next step starts from observe's own sample
+    assert (prior["std"] > 0.1).all() and not torch.allclose(prior["mean"], post["mean"])
+
+
 def test_replay_chunks_are_contiguous_and_uniform():
     replay = rd.Replay()
     for length, offset in [(9, 0), (19, 1000), (2, 5000)]:  # 10, 20 and 3 steps

@@ -41,9 +41,12 @@ def reference_update(agent, addressing, x, plan, args, train_index, mix_picks, m
                                  args.address_imagine_starts, args.vrama_select, args.vrama_reduction,
                                  args.vrama_objective)
         else:
-            advantage = rd.predicted_reward_sum(agent.wm, m)[train_index]
-            if args.method == "rbrama":
-                advantage = advantage - rd.predicted_reward_sum(agent.wm, x)
+            if args.method == "rbrama":  # x's baseline in M_j's filter pass, as since 2026-11-25 (the same sums up
+                # to the posterior noise drawn: test_one_filter_pass_gives_each_chunks_reward_sum)
+                sums = rd.predicted_reward_sum(agent.wm, {k: torch.cat([m[k], x[k]]) for k in ("obs", "action")})
+                advantage = sums[:len(m["action"])][train_index] - sums[len(m["action"]):]
+            else:
+                advantage = rd.predicted_reward_sum(agent.wm, m)[train_index]
             loss = rd.reinforce_loss(logits, train_index, advantage, args.address_standardize)
         rd.optimizer_step(addressing.opt, loss, addressing.net.parameters(), args.address_grad_clip)
     batch, reward_mask, model_mask = x, None, None
@@ -102,6 +105,21 @@ def test_fixed_shape_update_matches_the_variable_shape_update(monkeypatch, name)
     assert fixed_params.keys() == ref_params.keys()
     for k, v in fixed_params.items():
         assert torch.allclose(v, ref_params[k], rtol=1e-4, atol=1e-5), k
+
+
+def test_one_filter_pass_gives_each_chunks_reward_sum(monkeypatch):
+    """RbRAMa filters M_j and x in one pass: without posterior noise (zeroed here), each chunk's predicted reward sum
+    is the one its own pass gives, so the concatenation changes only which noise each row draws."""
+    torch.manual_seed(0)
+    agent = rd.Agent((3,), 2, rd.resolve_defaults(rd.Args(**SMALL)))
+    rng = np.random.default_rng(0)
+    replay = synthetic_replay((3,), 2, 3, 20, rng)
+    a, b = (rd.to_torch(replay.sample(n, 5, rng), "cpu") for n in (7, 6))
+    monkeypatch.setattr(torch, "randn_like", torch.zeros_like)
+    both = rd.predicted_reward_sum(agent.wm, {k: torch.cat([a[k], b[k]]) for k in ("obs", "action")})  # (13,)
+    alone = torch.cat([rd.predicted_reward_sum(agent.wm, a), rd.predicted_reward_sum(agent.wm, b)])
+    assert both.shape == (13,) and torch.allclose(both, alone, atol=1e-5)
+    assert not torch.allclose(both[:6], both[7:])  # the chunks differ: the check compares something
 
 
 def test_gumbel_max_picks_follow_q():
