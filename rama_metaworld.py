@@ -1140,11 +1140,11 @@ def lambda_return(reward, value, pcont, bootstrap, lam: float):
 
 def imagine(wm: WorldModel, actor: Actor, start: dict, horizon: int):
     """Roll the prior forward from start states (N, ...) with actions from the actor: features (H, N, F)."""
-    state, feats = start, []
+    state, feat, feats = start, wm.rssm.feat(start), []
     for _ in range(horizon):
-        action = actor(wm.rssm.feat(state).detach()).rsample()
-        state = wm.rssm.img_step(state, action)
-        feats.append(wm.rssm.feat(state))
+        state = wm.rssm.img_step(state, actor(feat.detach()).rsample())
+        feat = wm.rssm.feat(state)  # (N, F): the step's feature, and the actor's input at the next step
+        feats.append(feat)
     return torch.stack(feats, 0)
 
 
