@@ -16,6 +16,7 @@
 #   graphs     --cuda-graph on/off, paired, every method, fp32: paper size (pixels, 50x50) and state mode (16x50)
 #   precision  the same with --precision bf16, and fp32 with TF32 matrix products (cuBLAS override)
 #   profile    one paper-size Dreamer update's operators, eager and graphed (kernel time against wall time)
+#   kernels    the script against commit d1ecdaf's (before 2026-11-25's operator cuts), both graphed, paired
 #   compile    benchmarks/compiled_rssm.py (torch.compile on the RSSM's steps, or its whole loops) against the script,
 #              both graphed, paired: state mode for dreamer, rrama and vrama, and paper size for dreamer
 #   e2e-eager, e2e-graphs   a real walker-walk run from pixels (20k env steps): env steps/s end to end (EGL)
@@ -28,7 +29,7 @@
 #              a CPU with a tiny grid (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec); pixels-start and -poll are
 #              the same code on sweeps/pixels_dreamer.toml
 # Issue 39's next step, planned, not yet run (first call of a session, beside the share measurement):
-#   run(command="BUDGET=585 bash benchmarks/gpu_session.sh compile", carry=[".gpu"])
+#   run(command="BUDGET=585 bash benchmarks/gpu_session.sh kernels compile", carry=[".gpu"])
 # Issue 41 (walker tables), planned, not yet run: first the two Ms and the pilot, then the tables in the next calls:
 #   run(command="BUDGET=585 SPEC=sweeps/walker_tables.toml ONLY='prior_*' WORKERS=2 \
 #       bash benchmarks/gpu_session.sh sweep-start sweep-poll sweep-pack", carry=[".gpu"])
@@ -86,6 +87,17 @@ for stage in "$@"; do
         | tee "$OUT/profile-graphs.txt" | tail -30
       timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --profile 2>&1 \
         | tee "$OUT/profile-eager.txt" | tail -30 ;;
+    kernels)  # 2026-11-25's operator cuts (the prior head after the filter's loop, RbRAMa's one pass), graphed,
+      # paired against the script before them (commit d1ecdaf): what 15.6% fewer operators on a CPU buy on the GPU
+      # (a copy without .git: make the file before the call, `git show d1ecdaf:rama_dreamer.py > /tmp/before_cuts.py`
+      # here, then copy it to benchmarks/before_cuts.py, untracked, so that it travels with the working tree)
+      before=benchmarks/before_cuts.py
+      [ -f "$before" ] || git show d1ecdaf:rama_dreamer.py > "$before" || { echo "kernels: no $before"; continue; }
+      timeout "$(cap 200)" $BENCH --cuda-graph True --compare-to "$before" --sizes small --obs-type state \
+        --mlp-units 200 --updates 20 --json "$OUT/kernels-state.json" 2>&1 | tee "$OUT/kernels-state.txt"
+      timeout "$(cap 150)" python3 benchmarks/bench_update.py --device cuda --no-collection --methods dreamer rbrama \
+        --cuda-graph True --compare-to "$before" --sizes paper --updates 10 --json "$OUT/kernels-paper.json" 2>&1 \
+        | tee "$OUT/kernels-paper.txt" ;;
     compile)  # issue 39's next lever: torch.compile's fused kernels inside the graphs (benchmarks/compiled_rssm.py),
       # paired against the script, state mode (COMPILE_MODES: steps and/or loops; loops compiles for minutes)
       for mode in ${COMPILE_MODES:-steps loops}; do
@@ -154,7 +166,7 @@ for stage in "$@"; do
       for run in runs/"$exp"/*/; do tail -n 40 "$run/log.txt" > "$ST/logs/$exp/$(basename "$run").txt"; done
       tar czf "$OUT/$exp.tgz" "results/$exp" -C "$ST" logs && tar tzf "$OUT/$exp.tgz" | tail -n 12 ;;
     *) echo "unknown stage $stage (check, graphs, precision, profile, e2e-eager, e2e-graphs, pixels-start," \
-            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share, compile)" ;;
+            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share, kernels, compile)" ;;
   esac
 done
 # the device tool brings back at most 8 files: past 7, everything goes back as one archive
