@@ -1000,8 +1000,9 @@ class RSSM(nn.Module):
             state = self.initial(embed.shape[0], embed.device)
         embed_proj = self.obs_embed(embed)  # (B, T, hidden), one matmul for the whole chunk
         posts = []
-        for t in range(embed.shape[1]):
-            state = self.obs_step(self.deter_step(state, action[:, t]), embed_proj[:, t])
+        # unbind, not [:, t]: the backward pass stacks the T gradients once, not T zero-filled copies of the chunk
+        for action_t, embed_proj_t in zip(action.unbind(1), embed_proj.unbind(1)):
+            state = self.obs_step(self.deter_step(state, action_t), embed_proj_t)
             posts.append(state)
         post = {k: torch.stack([s[k] for s in posts], 1) for k in posts[0]}
         # the filter never reads a prior's sample, only its mean and std (the KL): the prior head runs once for all
@@ -1132,8 +1133,9 @@ def lambda_return(reward, value, pcont, bootstrap, lam: float):
     next_values = torch.cat([value[1:], bootstrap[None]], 0)
     inputs = reward + pcont * next_values * (1 - lam)
     returns, last = [], bootstrap
-    for t in reversed(range(reward.shape[0])):
-        last = inputs[t] + pcont[t] * lam * last
+    # unbind, not [t]: the backward pass stacks the H gradients once, not H zero-filled copies
+    for inputs_t, discount_t in zip(reversed(inputs.unbind(0)), reversed((pcont * lam).unbind(0))):
+        last = inputs_t + discount_t * last
         returns.append(last)
     return torch.stack(returns[::-1], 0)
 
