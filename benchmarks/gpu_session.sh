@@ -87,8 +87,8 @@ for stage in "$@"; do
         | tee "$OUT/profile-graphs.txt" | tail -30
       timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --profile 2>&1 \
         | tee "$OUT/profile-eager.txt" | tail -30 ;;
-    kernels)  # 2026-11-25's operator cuts (the prior head after the filter's loop, RbRAMa's one pass), graphed,
-      # paired against the script before them (commit d1ecdaf): what 15.6% fewer operators on a CPU buy on the GPU
+    kernels)  # 2026-11-25's operator cuts (the prior head after the filter's loop, RbRAMa's one pass, unbind), graphed,
+      # paired against the script before them (commit d1ecdaf): what 17.6% fewer operators on a CPU buy on the GPU
       # (a copy without .git: make the file before the call, `git show d1ecdaf:rama_dreamer.py > /tmp/before_cuts.py`
       # here, then copy it to benchmarks/before_cuts.py, untracked, so that it travels with the working tree)
       before=benchmarks/before_cuts.py
