@@ -31,7 +31,7 @@
 # Issue 39's next step, planned, not yet run (first call of a session, beside the share measurement):
 #   run(command="BUDGET=585 bash benchmarks/gpu_session.sh kernels compile", carry=[".gpu"])
 # Issue 41 (walker tables), planned, not yet run: first walk's M and the two pilots (stand's M is committed), then the tables:
-#   run(command="BUDGET=585 SPEC=sweeps/walker_tables.toml ONLY='prior_* pilot_*' WORKERS=2 \
+#   run(command="BUDGET=585 SPEC=sweeps/walker_tables.toml ONLY='prior_* pilot_*' WORKERS=3 \
 #       bash benchmarks/gpu_session.sh sweep-start sweep-poll sweep-pack", carry=[".gpu"])
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
