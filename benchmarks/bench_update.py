@@ -183,19 +183,26 @@ def timed_update(S, setup, batches, multitask, rng, device: torch.device, i: int
     return time.perf_counter() - t0, out
 
 
+def warmed_up(S, options: Options, args, setup, n: int, length: int, replay, multitask, rng, device):
+    """Runs a method_setup's warm-up updates (--warmup) on chunks (n, L) and returns the batches, at the one of the
+    update to measure next, and that update's index (--profile and --count-ops measure one update)."""
+    warmup = warmup_updates(options, args)
+    batches = S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(warmup + 1)
+    for i in range(warmup):
+        one_update(S, setup, next(batches)[0], multitask, rng, device, i)
+    return batches, warmup
+
+
 def profile_update(S, options: Options, args, obs_shape, action_size: int, replay, multitask, rng,
                    device: torch.device) -> None:
     """Where the time of one paper-size Dreamer update goes, operator by operator (after a warm-up update)."""
     from torch.profiler import ProfilerActivity, profile
 
     setup = method_setup(S, args, "dreamer", 50, 50, obs_shape, action_size, device)
-    warmup = warmup_updates(options, args)
-    batches = S.ChunkSampler(replay, 50, 50, rng, device, prefetch=False).batches(warmup + 1)
-    for i in range(warmup):
-        one_update(S, setup, next(batches)[0], multitask, rng, device, i)
+    batches, i = warmed_up(S, options, args, setup, 50, 50, replay, multitask, rng, device)
     cuda = device.type == "cuda"
     with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
-        one_update(S, setup, next(batches)[0], multitask, rng, device, warmup)
+        one_update(S, setup, next(batches)[0], multitask, rng, device, i)
         if cuda:
             torch.cuda.synchronize()
     print(prof.key_averages().table(sort_by="self_cuda_time_total" if cuda else "self_cpu_time_total", row_limit=25,
@@ -226,12 +233,9 @@ def count_update_ops(S, options: Options, args, obs_shape, action_size: int, rep
         for opt in list(setup[1].optimizers().values()) + ([setup[2].opt] if setup[2] else []):
             for group in opt.param_groups:
                 group["foreach"] = True
-        warmup = warmup_updates(options, args)
-        batches = S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(warmup + 1)
-        for i in range(warmup):
-            one_update(S, setup, next(batches)[0], multitask, rng, device, i)
+        batches, i = warmed_up(S, options, args, setup, n, length, replay, multitask, rng, device)
         with Count() as count:
-            one_update(S, setup, next(batches)[0], multitask, rng, device, warmup)
+            one_update(S, setup, next(batches)[0], multitask, rng, device, i)
         total = sum(count.ops.values())
         ROWS.append({"device": device.type, "size": options.sizes[0], "method": method, "operators": total,
                      "by_operator": dict(count.ops.most_common()), "flags": run_flags(args)})

@@ -12,10 +12,11 @@ guards are not run at all, which is what this measures.
     COMPILE=loops python benchmarks/bench_update.py ...     # the whole filter and imagination, unrolled
 
 COMPILE=steps (the default) compiles the RSSM's step functions (deter_step and obs_step, the filter's; img_step,
-imagination's): each is a small graph, compiled once per shape and reused by every step. COMPILE=loops compiles RSSM.observe and `imagine` whole (50 and 15 steps unrolled:
-minutes to compile, and the gradient sums across steps fuse too). COMPILED_SCRIPT=rama_metaworld.py compiles the
-sibling instead. Random draws stay torch's own (inductor's `fallback_random`), so a compiled update draws the eager
-script's numbers and gives its losses up to rounding (tests/test_bench.py checks it on the CPU).
+imagination's): each is a small graph, compiled once per shape and reused by every step. COMPILE=loops compiles
+RSSM.observe and `imagine` whole (50 and 15 steps unrolled: minutes to compile, and the gradient sums across steps
+fuse too). COMPILED_SCRIPT=rama_metaworld.py compiles the sibling instead. Random draws stay torch's own (inductor's
+`fallback_random`), so a compiled update draws the eager script's numbers and gives its losses up to rounding
+(tests/test_speed.py::test_the_compiled_rssm_variant_gives_the_scripts_updates checks it on the CPU).
 """
 import os
 

@@ -1,8 +1,8 @@
 """The fast paths compute what the plain path computes: same losses and gradients on a fixed batch (within a stated
 tolerance), same batches with and without prefetch, same episodes with and without parallel envs."""
 import copy
-import os
 import dataclasses
+import os
 
 import numpy as np
 import pytest
@@ -284,7 +284,8 @@ def test_the_compiled_rssm_variant_gives_the_scripts_updates(monkeypatch, mode, 
             x = module.to_torch(replay.sample(args.batch_size, args.seq_len, rng), "cpu")
             plan = module.plan_update(args, multitask, addressing, rng, "cpu", "now", i)
             out = module.update(agent, addressing, x, plan, args)
-            losses.append({k: float(v.detach()) for k, v in out["metrics"].items() if k.startswith(("losses/", "addressing/l"))})
+            losses.append({k: float(v.detach()) for k, v in out["metrics"].items()
+                           if k.startswith(("losses/", "addressing/l"))})
         results[module] = losses, agent.state_dict()
     (eager_losses, eager_params), (compiled_losses, compiled_params) = results[rd], results[compiled]
     for eager, fused in zip(eager_losses, compiled_losses):
