@@ -5,6 +5,8 @@
     python report.py results/cartpole_tables --out docs # write them to docs/ instead
     python report.py --runs runs/<run> [runs/<run> ...] --out docs/curve.png   # the training and evaluation
                                                            # returns of single runs, in one figure
+    python report.py --runs runs/<run> [runs/<run> ...] --key losses/kl charts/imagined_return --out kl.png
+                                                           # any logged metrics of single runs, a panel each
     python report.py results/pixels_dreamer --key eval/episodic_return \
         --reference results/pixels_dreamer/reference.json  # against Dreamer v1's published curves
     python report.py results/families_state --levels results/families_state/references.json  # against a random
@@ -479,23 +481,33 @@ def plot_scores(scores: dict, tasks: list, methods: list, title: str, key: str, 
     return rows
 
 
-def plot_runs(run_paths: list, out: str, title):
-    """Single runs' training and evaluation returns against environment steps, in one figure."""
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for run_path in run_paths:
-        metrics_path = os.path.join(run_path, "metrics.jsonl")
-        if not os.path.isfile(metrics_path):
-            sys.exit(f"error: {run_path}: no metrics.jsonl (not a run folder)")
-        label = os.path.basename(os.path.normpath(run_path))
-        for key, style in (("charts/episodic_return", dict(alpha=0.5, lw=1)), ("eval/episodic_return", dict(marker="o"))):
-            steps, values = read_series(metrics_path, key)
-            if len(steps):
-                ax.plot(steps, values, label=f"{key.split('/')[0]} — {label}"[:70], **style)
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel("episode return")
-    ax.set_title(title or os.path.basename(os.path.normpath(run_paths[0]))[:80], fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+def plot_runs(run_paths: list, out: str, title, keys=None):
+    """Single runs' curves against environment steps, in one figure: their training and evaluation returns, or
+    (keys) one panel per metric, e.g. losses/kl and charts/imagined_return beside the returns."""
+    fig, axes = plt.subplots(1, len(keys or [None]), figsize=(7 if not keys or len(keys) == 1 else 4.5 * len(keys), 4),
+                             squeeze=False)
+    for ax, key in zip(axes.flat, keys or [None]):
+        drawn = 0
+        for run_path in run_paths:
+            metrics_path = os.path.join(run_path, "metrics.jsonl")
+            if not os.path.isfile(metrics_path):
+                sys.exit(f"error: {run_path}: no metrics.jsonl (not a run folder)")
+            label = os.path.basename(os.path.normpath(run_path))
+            lines = [(key, dict(lw=1), label)] if key else [
+                ("charts/episodic_return", dict(alpha=0.5, lw=1), f"charts — {label}"),
+                ("eval/episodic_return", dict(marker="o"), f"eval — {label}")]
+            for series_key, style, series_label in lines:
+                steps, values = read_series(metrics_path, series_key)
+                if len(steps):
+                    ax.plot(steps, values, label=series_label[:70], **style)
+                    drawn += 1
+        if key and not drawn:
+            sys.exit(f"error: --key {key}: no run's metrics.jsonl logs it")
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(metric_label(key) if key else "episode return")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(title or os.path.basename(os.path.normpath(run_paths[0]))[:80], fontsize=9)
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     print(f"wrote {out}")
@@ -539,8 +551,9 @@ def main():
                         "with --runs, the PNG to write (default curve.png)")
     parser.add_argument("--runs", nargs="+", default=None, help="instead: draw these run folders' curves in one PNG")
     parser.add_argument("--title", default=None, help="--runs: the figure's title (default: the first run's name)")
-    parser.add_argument("--key", default="charts/episodic_return", help="the metric (e.g. eval/episodic_return, "
-                        "charts/success_rate)")
+    parser.add_argument("--key", nargs="+", default=None, help="the metric (default charts/episodic_return; e.g. "
+                        "eval/episodic_return, charts/success_rate); with --runs, one panel per key given (e.g. "
+                        "losses/kl charts/imagined_return) instead of the returns")
     parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples per task and method")
     parser.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
     parser.add_argument("--bins", type=int, default=50, help="curves: bins of environment steps")
@@ -554,12 +567,16 @@ def main():
                              "grid under another --preset)")
     args = parser.parse_args()
     if args.runs:
-        return plot_runs(args.runs, args.out or "curve.png", args.title)
+        return plot_runs(args.runs, args.out or "curve.png", args.title, args.key)
+    if args.key and len(args.key) > 1:
+        parser.error("--key: one metric for the tables (several only with --runs)")
+    args.key = args.key[0] if args.key else "charts/episodic_return"
     if not args.folders:
         parser.error("give experiment folders (results/<experiment>) or --runs")
     # the options that change the report, for its "Made by" line
-    options = "".join(f" --{name} {getattr(args, name)}" for name in ("key", "reps", "seed", "bins", "decimals")
-                      if getattr(args, name) != parser.get_default(name))
+    options = (f" --key {args.key}" if args.key != "charts/episodic_return" else "") + "".join(
+        f" --{name} {getattr(args, name)}" for name in ("reps", "seed", "bins", "decimals")
+        if getattr(args, name) != parser.get_default(name))
     options += f" --beside {' '.join(args.beside)}" if args.beside else ""  # one flag: a second --beside replaces
     reference = None
     if args.reference:

@@ -182,6 +182,25 @@ def test_runs_curves_write_a_png(tmp_path):  # what plot_curves.py did
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_runs_curves_draw_a_panel_per_key_and_name_a_missing_one(tmp_path):
+    """--runs with --key: one panel per metric (here the KL and the imagined return), a key no run logs named."""
+    import matplotlib.image
+
+    run = write_run(tmp_path, "run", [1.0, 2.0, 3.0, 4.0])
+    with open(run / "metrics.jsonl", "a") as f:
+        for step in (100, 200, 300):
+            f.write(json.dumps({"step": step, "losses/kl": step / 50, "charts/imagined_return": step / 10}) + "\n")
+    one, two = tmp_path / "one.png", tmp_path / "two.png"
+    run_script("report.py", "--runs", str(run), "--key", "losses/kl", "--out", str(one))
+    run_script("report.py", "--runs", str(run), "--key", "losses/kl", "charts/imagined_return", "--out", str(two))
+    width_one, width_two = (matplotlib.image.imread(str(p)).shape[1] for p in (one, two))
+    assert width_two > 1.2 * width_one  # two panels side by side
+    proc = run_script("report.py", "--runs", str(run), "--key", "losses/nothing", check=False)
+    assert proc.returncode != 0 and "--key losses/nothing" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    proc = run_script("report.py", str(tmp_path), "--key", "a", "b", check=False)
+    assert proc.returncode != 0 and "several only with --runs" in proc.stderr
+
+
 def test_runs_curves_name_a_bad_folder(tmp_path):
     proc = run_script("report.py", "--runs", str(tmp_path), check=False)
     assert proc.returncode != 0 and str(tmp_path) in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
