@@ -30,7 +30,8 @@
 #              the same code on sweeps/pixels_dreamer.toml
 # Issue 39's next step, planned, not yet run (first call of a session, beside the share measurement):
 #   run(command="BUDGET=585 bash benchmarks/gpu_session.sh kernels compile", carry=[".gpu"])
-# Issue 41 (walker tables), planned, not yet run: first walk's M and the two pilots (stand's M is committed), then the tables:
+# Issue 41 (walker tables), planned, not yet run: first walk's M and the pilots not yet committed (4 runs; stand's M
+# and pilot_paper_kl's seeds 0-1 were made on the CPU and are skipped), then the tables:
 #   run(command="BUDGET=585 SPEC=sweeps/walker_tables.toml ONLY='prior_* pilot_*' WORKERS=3 \
 #       bash benchmarks/gpu_session.sh sweep-start sweep-poll sweep-pack", carry=[".gpu"])
 set -uo pipefail
