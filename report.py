@@ -486,13 +486,15 @@ def plot_runs(run_paths: list, out: str, title, keys=None):
     (keys) one panel per metric, e.g. losses/kl and charts/imagined_return beside the returns."""
     fig, axes = plt.subplots(1, len(keys or [None]), figsize=(7 if not keys or len(keys) == 1 else 4.5 * len(keys), 4),
                              squeeze=False)
+    runs = []  # (metrics.jsonl, label) per run, checked once before any panel is drawn
+    for run_path in run_paths:
+        metrics_path = os.path.join(run_path, "metrics.jsonl")
+        if not os.path.isfile(metrics_path):
+            sys.exit(f"error: {run_path}: no metrics.jsonl (not a run folder)")
+        runs.append((metrics_path, os.path.basename(os.path.normpath(run_path))))
     for ax, key in zip(axes.flat, keys or [None]):
         drawn = 0
-        for run_path in run_paths:
-            metrics_path = os.path.join(run_path, "metrics.jsonl")
-            if not os.path.isfile(metrics_path):
-                sys.exit(f"error: {run_path}: no metrics.jsonl (not a run folder)")
-            label = os.path.basename(os.path.normpath(run_path))
+        for metrics_path, label in runs:
             lines = [(key, dict(lw=1), label)] if key else [
                 ("charts/episodic_return", dict(alpha=0.5, lw=1), f"charts — {label}"),
                 ("eval/episodic_return", dict(marker="o"), f"eval — {label}")]
@@ -507,7 +509,7 @@ def plot_runs(run_paths: list, out: str, title, keys=None):
         ax.set_ylabel(metric_label(key) if key else "episode return")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(title or os.path.basename(os.path.normpath(run_paths[0]))[:80], fontsize=9)
+    fig.suptitle(title or runs[0][1][:80], fontsize=9)
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     print(f"wrote {out}")
