@@ -21,12 +21,15 @@ Run (from the repository root):
     git show 33e394e:rama_dreamer.py > /tmp/old.py                     # this version against an older one:
     python benchmarks/bench_update.py --device cpu --compare-to /tmp/old.py --sizes paper --methods dreamer
     python benchmarks/bench_update.py --script rama_metaworld --env-id metaworld/push --num-envs 4
+    python benchmarks/bench_update.py --device cuda --cuda-graph True --share 1 4 16 --sizes small --obs-type state \
+        --mlp-units 200 --methods dreamer                              # 1, 4, 16 processes sharing the GPU
 """
 import collections
 import dataclasses
 import importlib
 import importlib.util
 import json
+import multiprocessing
 import os
 import platform
 import sys
@@ -76,6 +79,12 @@ class Options:
     """instead of the table: this script against another version of it (a file, e.g. an older commit's), paired"""
     json: Optional[str] = None
     """also write the table's rows, and the first line's facts, to this JSON file"""
+    share: Tuple[int, ...] = ()
+    """instead of the table: for each N, N processes side by side on the one device, each running updates of the first
+    of --methods at the first of --sizes for --share-seconds once all are warmed up: the updates per second of all
+    together against one alone (do runs sharing a GPU add up?), and each process's GPU memory"""
+    share_seconds: float = 15.0
+    """how long each --share process runs updates after the common start"""
 
 
 def script_flag(argv: list) -> str:
@@ -330,6 +339,75 @@ def paired_timing(S, options: Options, args, device: torch.device, obs_shape, ac
               f"pairs {first} faster", flush=True)
 
 
+def share_worker(script: str, options: Options, args, rank: int, barrier, results) -> None:
+    """One --share process: its own agent and synthetic episodes, warmed up (and captured), then updates in rounds of
+    10 (a sync after each, as a real run syncs once per round) from the moment every process is ready until
+    --share-seconds later. Puts (rank, updates done, seconds, bytes of device memory the allocator held at most)."""
+    S, device = importlib.import_module(script), torch.device(args.device)
+    n, length = SIZES[options.sizes[0]]
+    obs_shape, action_size = observation_shape(script, args), STATE_AND_ACTION[script][1]
+    rng = np.random.default_rng(args.seed + rank)
+    replay, multitask = synthetic_data(S, obs_shape, action_size, rng)
+    torch.manual_seed(args.seed + rank)
+    setup = method_setup(S, args, options.methods[0], n, length, obs_shape, action_size, device)
+    warmup = warmup_updates(options, args)
+    batches = S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(10**9)
+    for i in range(warmup):
+        one_update(S, setup, next(batches)[0], multitask, rng, device, i)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    sync()
+    barrier.wait()
+    t0, done = time.perf_counter(), 0
+    while time.perf_counter() - t0 < options.share_seconds:
+        for _ in range(10):
+            one_update(S, setup, next(batches)[0], multitask, rng, device, warmup + done)
+            done += 1
+        sync()
+    memory = torch.cuda.max_memory_reserved() if device.type == "cuda" else 0
+    results.put((rank, done, time.perf_counter() - t0, memory))
+
+
+def shared_timing(options: Options, args) -> None:
+    """--share: for each N, N processes (spawned, each with its own CUDA context) run updates side by side; one row
+    per N: updates/s in all, per process, and against N = 1 (or the first N), and GPU memory per process."""
+    context = multiprocessing.get_context("spawn")
+    print(f"{'device':<6} {'size':<6} {'method':<8} {'procs':>5} {'updates/s':>10} {'per proc':>9} {'ms/update':>10} "
+          f"{'vs first':>9} {'GiB/proc':>9}", flush=True)
+    first = None
+    for count in options.share:
+        barrier, results = context.Barrier(count), context.Queue()
+        procs = [context.Process(target=share_worker, args=(options.script, options, args, rank, barrier, results))
+                 for rank in range(count)]
+        for proc in procs:
+            proc.start()
+        rows = [results.get() for _ in procs]  # (rank, updates, seconds, bytes)
+        for proc in procs:
+            proc.join()
+        rate = sum(done / seconds for _, done, seconds, _ in rows)  # updates per second, all processes together
+        first = first or rate
+        memory = max(r[3] for r in rows) / 2**30
+        ROWS.append({"device": args.device, "size": options.sizes[0], "method": options.methods[0],
+                     "processes": count, "updates_per_second": rate, "vs_first": rate / first,
+                     "ms_per_update": [1000 * seconds / done for _, done, seconds, _ in sorted(rows)],
+                     "gib_per_process": memory, "seconds": options.share_seconds, "flags": run_flags(args),
+                     "mps": bool(os.environ.get("CUDA_MPS_PIPE_DIRECTORY"))})
+        print(f"{args.device:<6} {options.sizes[0]:<6} {options.methods[0]:<8} {count:>5} {rate:>10.1f} "
+              f"{rate / count:>9.1f} {1000 * count / rate:>10.1f} {rate / first:>8.2f}x {memory:>9.2f}", flush=True)
+
+
+def observation_shape(script: str, args) -> tuple:
+    return (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else STATE_AND_ACTION[script][0]
+
+
+def synthetic_data(S, obs_shape, action_size: int, rng) -> tuple:
+    """The timed task's replay (4 synthetic episodes of 500 steps) and M (4 of a prior task, then the replay's)."""
+    replay = synthetic_replay(S.Replay(), obs_shape, action_size, episodes=4, length=500, rng=rng, task="current")
+    multitask = synthetic_replay(S.Replay(), obs_shape, action_size, episodes=4, length=500, rng=rng, task="prior")
+    for episode in replay.episodes:
+        multitask.add(episode)
+    return replay, multitask
+
+
 def main(S, options: Options, args) -> None:
     """Seconds per full update per method and size, on CPU and on CUDA when present (--device auto), or on --device."""
     args = S.resolve_defaults(args)
@@ -342,6 +420,11 @@ def main(S, options: Options, args) -> None:
     if options.ab_flag and options.ab_flag.replace("-", "_") not in bools:
         raise S.UsageError(f"--ab-flag {options.ab_flag}: not a boolean flag of {options.script} "
                            f"(one of {', '.join(S.flag(n)[2:] for n in bools)})")
+    if any(count < 1 for count in options.share) or options.share_seconds <= 0:
+        raise S.UsageError(f"--share {options.share} --share-seconds {options.share_seconds}: counts of processes "
+                           "must be > 0, and the seconds too")
+    if options.share and args.device == "auto":
+        raise S.UsageError("--share: name the device (--device cuda or --device cpu)")
     if options.compare_to and not os.path.isfile(options.compare_to):
         raise S.UsageError(f"--compare-to {options.compare_to}: no such file")
     if (options.ab_flag or "").replace("-", "_") == "cuda_graph":
@@ -370,13 +453,11 @@ def run_flags(args) -> str:
 def run(S, options: Options, args, devices: list) -> None:
     for device_name in devices:  # check_args checked --device; `auto` times the CPU as well
         S.check_precision(args.precision, torch.device(device_name))
-    state_shape, action_size = STATE_AND_ACTION[options.script]
-    obs_shape = (args.image_size, args.image_size, 3) if args.obs_type == "pixels" else state_shape
+    if options.share:
+        return shared_timing(options, args)
+    obs_shape, action_size = observation_shape(options.script, args), STATE_AND_ACTION[options.script][1]
     rng = np.random.default_rng(args.seed)
-    replay = synthetic_replay(S.Replay(), obs_shape, action_size, episodes=4, length=500, rng=rng, task="current")
-    multitask = synthetic_replay(S.Replay(), obs_shape, action_size, episodes=4, length=500, rng=rng, task="prior")
-    for episode in replay.episodes:
-        multitask.add(episode)
+    replay, multitask = synthetic_data(S, obs_shape, action_size, rng)
     if options.ab_flag or options.compare_to:
         return paired_timing(S, options, args, torch.device(devices[-1]), obs_shape, action_size, replay, multitask,
                              rng)

@@ -8,9 +8,10 @@
 #       bash benchmarks/gpu_session.sh pixels-start pixels-poll pixels-pack", carry=[".gpu"])
 #   run(command="BUDGET=585 bash benchmarks/gpu_session.sh pixels-poll pixels-pack", carry=[".gpu"])  # within 30 s
 #       # two pixel runs of 100k env steps side by side: 23.5 min (2026-11-24), so three calls in all
-#   run(command="BUDGET=400 SHARE='state 1;state 2;state 4' bash benchmarks/gpu_session.sh e2e-graphs share; \
-#       MPS=1 BUDGET=170 SHARE='state 4' bash benchmarks/gpu_session.sh share", carry=[".gpu"])
-#       # issue 39's remainder, estimated (not yet run): one pixel run alone, then state runs side by side, then MPS
+#   run(command="BUDGET=430 COMPILE_MODES=loops KERNEL_METHODS='dreamer rbrama' KERNELS_PAPER=0 \
+#       bash benchmarks/gpu_session.sh share-bench compile kernels", carry=[".gpu"])
+#       # 334 s on an H100 on 2026-11-25, then `MPS=1 SHARE='state 1;state 16' ... share` (141 s) and
+#       # `COMPILE_MODES=steps STEPS_METHODS=dreamer ... compile` (31 s): results/benchmarks/2026-11-25-h100.json
 # Stages:
 #   check      the CUDA equivalence test: graphed updates against eager ones (tests/test_cuda_graph.py)
 #   graphs     --cuda-graph on/off, paired, every method, fp32: paper size (pixels, 50x50) and state mode (16x50)
@@ -20,7 +21,10 @@
 #   compile    benchmarks/compiled_rssm.py (torch.compile on the RSSM's steps, or its whole loops) against the script,
 #              both graphed, paired: state mode for dreamer, rrama and vrama, and paper size for dreamer
 #   e2e-eager, e2e-graphs   a real walker-walk run from pixels (20k env steps): env steps/s end to end (EGL)
-#   share      1, 2 and 4 state-mode runs and 2 pixel runs side by side: env steps/s in all, GPU memory per run
+#   share      real runs side by side on the one GPU (SHARE, default 1, 2 and 4 state-mode runs and 2 pixel runs;
+#              MPS=1 through MPS): env steps/s in all, GPU memory per run
+#   share-bench  bench_update.py --share: 1/4 state-mode processes' graphed updates side by side without MPS, 1/4/16
+#              with it, and 1/2 paper-size ones with it: updates/s in all
 #   pixels-start, pixels-poll, pixels-pack   issue 40's walker-stand seeds (sweeps/pixels_dreamer.toml) across calls
 #   sweep-start, sweep-poll, sweep-pack      any spec the same way (issue 41: SPEC=sweeps/walker_tables.toml), with
 #              ONLY (sweep.py --only patterns), WORKERS (runs side by side) and FLAGS (added to the spec's); the poll
@@ -28,17 +32,17 @@
 #              left it (args.json, metrics.jsonl and the priors' kept episodes) and every run's log tail. Checked on
 #              a CPU with a tiny grid (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec); pixels-start and -poll are
 #              the same code on sweeps/pixels_dreamer.toml
-# Issue 39's next step, planned, not yet run (first call of a session, beside the share measurement):
-#   run(command="BUDGET=585 bash benchmarks/gpu_session.sh kernels compile", carry=[".gpu"])
 # Issue 41 (walker tables), planned, not yet run: first walk's M and the pilots not yet committed (4 runs; stand's M
-# and pilot_paper_kl's seeds 0-1 were made on the CPU and are skipped), then the tables:
-#   run(command="BUDGET=585 SPEC=sweeps/walker_tables.toml ONLY='prior_* pilot_*' WORKERS=3 \
+# and pilot_paper_kl's seeds 0-1 were made on the CPU and are skipped), then the tables, 16 runs at a time under MPS
+# (2026-11-25: 16 state-mode runs side by side made 9x one run's env steps/s; without MPS runs only take turns):
+#   run(command="BUDGET=585 MPS=1 SPEC=sweeps/walker_tables.toml ONLY='prior_* pilot_*' WORKERS=16 \
 #       bash benchmarks/gpu_session.sh sweep-start sweep-poll sweep-pack", carry=[".gpu"])
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
 mkdir -p "$OUT"
 METHODS="dreamer uniform rrama rbrama vrama"
 BENCH="python3 benchmarks/bench_update.py --device cuda --no-collection --methods $METHODS"
+BENCH_SHARE="python3 benchmarks/bench_update.py --device cuda --cuda-graph True --methods dreamer --share-seconds 8"
 
 # Every stage ends by a deadline: BUDGET seconds after the start (default 560, inside the device tool's 600 s per
 # call), so a slow stage leaves the later ones their time and $OUT always comes back with what was measured.
@@ -54,6 +58,18 @@ start_sweep() {
   grep -A1 '^flags = """' "$ST/spec.toml" | tee "$OUT/$(basename "$1" .toml)-spec.txt"
   set -f; setsid nohup python3 sweep.py "$ST/spec.toml" --workers "$3" ${2:+--only $2} > "$ST/sweep.log" 2>&1 < /dev/null &
   set +f; echo $! > "$ST/pid"; sleep 5; cat "$ST/sweep.log"
+}
+
+# NVIDIA's multi-process service, so that processes sharing the GPU may run their small kernels at the same time
+# rather than take turns (if the image has nvidia-cuda-mps-control; otherwise one line says so and they share as usual)
+mps_start() {
+  export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps CUDA_MPS_LOG_DIRECTORY=/tmp/mps-log; mkdir -p /tmp/mps /tmp/mps-log
+  if nvidia-cuda-mps-control -d >> "$OUT/mps.txt" 2>&1; then echo "MPS: started" | tee -a "$OUT/mps.txt"
+  else echo "MPS: could not start" | tee -a "$OUT/mps.txt"; unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY; fi
+}
+mps_stop() {
+  [ -n "${CUDA_MPS_PIPE_DIRECTORY:-}" ] && { echo quit | nvidia-cuda-mps-control; sleep 2; }
+  unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY
 }
 
 # set-up (once per machine): Python packages from .gpu/wheels into /tmp/site; EGL libraries from .gpu/debs for MuJoCo
@@ -94,22 +110,39 @@ for stage in "$@"; do
       # here, then copy it to benchmarks/before_cuts.py, untracked, so that it travels with the working tree)
       before=benchmarks/before_cuts.py
       [ -f "$before" ] || git show d1ecdaf:rama_dreamer.py > "$before" || { echo "kernels: no $before"; continue; }
-      timeout "$(cap 200)" $BENCH --cuda-graph True --compare-to "$before" --sizes small --obs-type state \
+      timeout "$(cap 200)" python3 benchmarks/bench_update.py --device cuda --no-collection --methods \
+        ${KERNEL_METHODS:-$METHODS} --cuda-graph True --compare-to "$before" --sizes small --obs-type state \
         --mlp-units 200 --updates 20 --json "$OUT/kernels-state.json" 2>&1 | tee "$OUT/kernels-state.txt"
-      timeout "$(cap 150)" python3 benchmarks/bench_update.py --device cuda --no-collection --methods dreamer rbrama \
-        --cuda-graph True --compare-to "$before" --sizes paper --updates 10 --json "$OUT/kernels-paper.json" 2>&1 \
-        | tee "$OUT/kernels-paper.txt" ;;
+      [ "${KERNELS_PAPER:-1}" = 1 ] && timeout "$(cap 150)" python3 benchmarks/bench_update.py --device cuda \
+        --no-collection --methods dreamer rbrama --cuda-graph True --compare-to "$before" --sizes paper --updates 10 \
+        --json "$OUT/kernels-paper.json" 2>&1 | tee "$OUT/kernels-paper.txt" ;;
     compile)  # issue 39's next lever: torch.compile's fused kernels inside the graphs (benchmarks/compiled_rssm.py),
-      # paired against the script, state mode (COMPILE_MODES: steps and/or loops; loops compiles for minutes)
-      for mode in ${COMPILE_MODES:-steps loops}; do
+      # paired against the script, state mode (COMPILE_MODES: loops and/or steps; loops compiles for minutes, so it
+      # times LOOPS_METHODS, dreamer by default; STEPS_METHODS likewise); COMPILE_PAPER=loops or steps adds that mode
+      # at paper size for dreamer
+      for mode in ${COMPILE_MODES:-loops steps}; do
+        methods=$([ "$mode" = loops ] && echo ${LOOPS_METHODS:-dreamer} || echo ${STEPS_METHODS:-dreamer rrama vrama})
         COMPILE=$mode timeout "$(cap 240)" python3 benchmarks/bench_update.py --device cuda --no-collection \
-          --cuda-graph True --compare-to benchmarks/compiled_rssm.py --methods dreamer rrama vrama --sizes small \
+          --cuda-graph True --compare-to benchmarks/compiled_rssm.py --methods $methods --sizes small \
           --obs-type state --mlp-units 200 --updates 20 --json "$OUT/compile-$mode-state.json" 2>&1 \
           | grep -v -i warn | tee "$OUT/compile-$mode-state.txt"
       done
-      COMPILE=steps timeout "$(cap 150)" python3 benchmarks/bench_update.py --device cuda --no-collection \
-        --cuda-graph True --compare-to benchmarks/compiled_rssm.py --methods dreamer --sizes paper --updates 10 \
-        --json "$OUT/compile-steps-paper.json" 2>&1 | grep -v -i warn | tee "$OUT/compile-steps-paper.txt" ;;
+      mode=${COMPILE_PAPER:-}
+      [ -n "$mode" ] && COMPILE=$mode timeout "$(cap 240)" python3 benchmarks/bench_update.py --device cuda \
+        --no-collection --cuda-graph True --compare-to benchmarks/compiled_rssm.py --methods dreamer --sizes paper \
+        --updates 10 --json "$OUT/compile-$mode-paper.json" 2>&1 | grep -v -i warn | tee "$OUT/compile-$mode-paper.txt" ;;
+    share-bench)  # issue 39 item 5 and issue 41's budget: N processes' graphed updates side by side on the one GPU,
+      # without and with MPS (bench_update.py --share): do updates add up when runs share the GPU? State mode 1/4/16
+      # processes, paper size 1/2 (MPS only). Updates alone, no collection: the update is what a run mostly waits on
+      for mps in 0 1; do
+        [ "$mps" = 1 ] && mps_start
+        counts=$([ "$mps" = 1 ] && echo 1 4 16 || echo 1 4)
+        OMP_NUM_THREADS=1 timeout "$(cap 90)" $BENCH_SHARE --share $counts --sizes small --obs-type state \
+          --mlp-units 200 --json "$OUT/share-state-mps$mps.json" 2>&1 | tee "$OUT/share-state-mps$mps.txt"
+        [ "$mps" = 1 ] && OMP_NUM_THREADS=1 timeout "$(cap 60)" $BENCH_SHARE --share 1 2 --sizes paper \
+          --json "$OUT/share-paper-mps$mps.json" 2>&1 | tee "$OUT/share-paper-mps$mps.txt"
+        [ "$mps" = 1 ] && mps_stop
+      done ;;
     e2e-eager|e2e-graphs)  # one per call: the eager run takes about 8 of a call's 10 minutes
       flag=$([ "$stage" = e2e-graphs ] && echo True || echo False)
       timeout "$(( $(left) - 10 ))" python3 rama_dreamer.py --env-id dmc/walker-walk --total-steps 20000 --eval-every 20000 \
@@ -118,10 +151,7 @@ for stage in "$@"; do
     share)  # issue 39, item 5: N runs side by side on the one GPU: aggregate env steps/s and GPU memory per run
       # MPS=1: through NVIDIA's multi-process service, so that the runs' small kernels may overlap rather than take
       # turns (if the image has nvidia-cuda-mps-control; otherwise one line says so and the runs share as usual)
-      if [ "${MPS:-0}" = 1 ]; then
-        export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps CUDA_MPS_LOG_DIRECTORY=/tmp/mps-log; mkdir -p /tmp/mps /tmp/mps-log
-        nvidia-cuda-mps-control -d 2>&1 | tee -a "$OUT/share.txt" || echo "MPS: could not start" | tee -a "$OUT/share.txt"
-      fi
+      [ "${MPS:-0}" = 1 ] && mps_start
       IFS=';' read -ra specs <<< "${SHARE:-state 1;state 2;state 4;pixels 2}"  # SHARE="state 8;state 16" for others
       for spec in "${specs[@]}"; do
         [ "$(left)" -lt 60 ] && { echo "share: $spec skipped (the call's deadline)" | tee -a "$OUT/share.txt"; continue; }
@@ -138,8 +168,9 @@ for stage in "$@"; do
         echo "$obs x$n: ${took} s wall, $(python3 -c "print(f'{$n * 10000 / $took:.0f}')") env steps/s in all," \
           "GPU MiB per process at 20 s: $mem, MPS ${MPS:-0}" | tee -a "$OUT/share.txt"
       done
-      [ "${MPS:-0}" = 1 ] && { echo quit | nvidia-cuda-mps-control; } ;;
+      [ "${MPS:-0}" = 1 ] && mps_stop ;;
     pixels-start)  # issue 40, detached: the runs go on while later calls hold the machine (within 30 s of each other)
+      [ "${MPS:-0}" = 1 ] && mps_start  # (2 paper-size processes: 1.26x one's updates/s under MPS, 2026-11-25)
       # PIXEL_ONLY picks the runs, PIXEL_FLAGS adds flags to the spec's (e.g. --precision bf16; graphs are the CUDA default)
       start_sweep sweeps/pixels_dreamer.toml "${PIXEL_ONLY:-walker_stand__*}" "${PIXEL_WORKERS:-3}" "${PIXEL_FLAGS:-}" ;;
     pixels-pack)  # every run's args.json, metrics.jsonl, log tail and last open-loop GIF, as results/ holds them
@@ -153,7 +184,9 @@ for stage in "$@"; do
       nvidia-smi > "$OUT/pixels_dreamer/nvidia-smi.txt" 2>&1
       tar czf "$OUT/pixels_dreamer.tgz" -C "$OUT" pixels_dreamer && rm -rf "$OUT/pixels_dreamer" \
         && tar tzvf "$OUT/pixels_dreamer.tgz" ;;
-    sweep-start)  # detached, like pixels-start: the runs go on between calls (their bookkeeping in $ST)
+    sweep-start)  # detached, like pixels-start: the runs go on between calls (their bookkeeping in $ST); MPS=1 runs
+      # them through MPS (16 state-mode runs side by side: 9x one run's env steps/s on the H100, 2026-11-25)
+      [ "${MPS:-0}" = 1 ] && mps_start
       start_sweep "${SPEC:?sweep-start needs SPEC=sweeps/<name>.toml}" "${ONLY:-}" "${WORKERS:-4}" "${FLAGS:-}" ;;
     pixels-poll|sweep-poll)  # until the sweep has ended or 45 s of the call are left: each unfinished run's last line, every minute
       exp=$(sed -n 's/^experiment = "\(.*\)"/\1/p' "$ST/spec.toml")
@@ -167,7 +200,7 @@ for stage in "$@"; do
       for run in runs/"$exp"/*/; do tail -n 40 "$run/log.txt" > "$ST/logs/$exp/$(basename "$run").txt"; done
       tar czf "$OUT/$exp.tgz" "results/$exp" -C "$ST" logs && tar tzf "$OUT/$exp.tgz" | tail -n 12 ;;
     *) echo "unknown stage $stage (check, graphs, precision, profile, e2e-eager, e2e-graphs, pixels-start," \
-            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share, kernels, compile)" ;;
+            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share, share-bench, kernels, compile)" ;;
   esac
 done
 # the device tool brings back at most 8 files: past 7, everything goes back as one archive

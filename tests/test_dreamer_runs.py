@@ -256,3 +256,23 @@ def test_benchmark_counts_the_operators_of_an_update(tmp_path):
         counts[horizon] = {r["method"]: r["operators"] for r in rows}
     assert counts[3]["dreamer"] < counts[3]["vrama"]  # VRAMa's addressing step imagines as well
     assert counts[3]["dreamer"] < counts[4]["dreamer"]  # one more imagined step (and its backward pass)
+
+
+@pytest.mark.slow
+def test_benchmark_share_runs_processes_side_by_side(tmp_path):
+    """--share N: N spawned processes time updates together after one common start; a row per N gives the updates per
+    second of all of them (each process's own time per update kept), against the first N. Bad counts: one line."""
+    tiny = ["--obs-type", "state", "--sizes", "small", "--device", "cpu", "--deter-size", "8", "--stoch-size", "4",
+            "--hidden-size", "8", "--mlp-units", "8", "--horizon", "3", "--methods", "rrama"]
+    out = tmp_path / "share.json"
+    proc = bench(*tiny, "--share", "1", "2", "--share-seconds", "1", "--json", str(out))
+    rows = json.load(open(out))["rows"]
+    assert [(r["processes"], r["method"], len(r["ms_per_update"])) for r in rows] == [(1, "rrama", 1), (2, "rrama", 2)]
+    for row in rows:  # all together: the sum over processes of 1 / (each one's seconds per update)
+        assert row["updates_per_second"] == pytest.approx(sum(1000 / ms for ms in row["ms_per_update"]))
+    assert rows[0]["vs_first"] == 1.0
+    assert rows[1]["vs_first"] == pytest.approx(rows[1]["updates_per_second"] / rows[0]["updates_per_second"])
+    lines = [line.split() for line in proc.stdout.splitlines()[2:]]
+    assert [(line[0], line[2], line[3]) for line in lines] == [("cpu", "rrama", "1"), ("cpu", "rrama", "2")]
+    bad = run_script(os.path.join("benchmarks", "bench_update.py"), *tiny, "--share", "0", check=False, timeout=60)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--share" in bad.stderr, bad.stderr
