@@ -32,6 +32,7 @@ import json
 import multiprocessing
 import os
 import platform
+import queue
 import sys
 import time
 from dataclasses import dataclass
@@ -380,7 +381,16 @@ def shared_timing(options: Options, args) -> None:
                  for rank in range(count)]
         for proc in procs:
             proc.start()
-        rows = [results.get() for _ in procs]  # (rank, updates, seconds, bytes)
+        rows = []  # (rank, updates, seconds, bytes), one per process
+        while len(rows) < count:
+            try:
+                rows.append(results.get(timeout=5))
+            except queue.Empty:  # a process that died (its traceback is above) would leave the others at the barrier
+                if any(proc.exitcode not in (None, 0) for proc in procs):
+                    for proc in procs:
+                        proc.kill()
+                    raise SystemExit(f"--share {count}: a process failed (exit codes "
+                                     f"{[proc.exitcode for proc in procs]})")
         for proc in procs:
             proc.join()
         rate = sum(done / seconds for _, done, seconds, _ in rows)  # updates per second, all processes together
