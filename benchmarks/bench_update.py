@@ -193,11 +193,12 @@ def timed_update(S, setup, batches, multitask, rng, device: torch.device, i: int
     return time.perf_counter() - t0, out
 
 
-def warmed_up(S, options: Options, args, setup, n: int, length: int, replay, multitask, rng, device):
+def warmed_up(S, options: Options, args, setup, n: int, length: int, replay, multitask, rng, device, measured: int = 1):
     """Runs a method_setup's warm-up updates (--warmup) on chunks (n, L) and returns the batches, at the one of the
-    update to measure next, and that update's index (--profile and --count-ops measure one update)."""
+    update to measure next, and that update's index (--profile and --count-ops measure one update, --share as many
+    as fit in its seconds: `measured` batches follow the warm-up's)."""
     warmup = warmup_updates(options, args)
-    batches = S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(warmup + 1)
+    batches = S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(warmup + measured)
     for i in range(warmup):
         one_update(S, setup, next(batches)[0], multitask, rng, device, i)
     return batches, warmup
@@ -351,10 +352,7 @@ def share_worker(script: str, options: Options, args, rank: int, barrier, result
     replay, multitask = synthetic_data(S, obs_shape, action_size, rng)
     torch.manual_seed(args.seed + rank)
     setup = method_setup(S, args, options.methods[0], n, length, obs_shape, action_size, device)
-    warmup = warmup_updates(options, args)
-    batches = S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(10**9)
-    for i in range(warmup):
-        one_update(S, setup, next(batches)[0], multitask, rng, device, i)
+    batches, warmup = warmed_up(S, options, args, setup, n, length, replay, multitask, rng, device, measured=10**9)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     sync()
     barrier.wait()
