@@ -1169,7 +1169,8 @@ def select_chunks(one_hot, chunks):
 
 @torch.no_grad()
 def predicted_reward_sum(wm: WorldModel, batch: dict):
-    """Σ_t of the reward head on the posterior states of each chunk: (B,), the bandit's reward (Eqs. 2-3)."""
+    """Σ_t of the reward head's mean on the posterior states of each chunk: (B,), the bandit's reward (Eqs. 2-3,
+    whose r_t ~ p(r_t | s_t) is replaced by its mean: the same expected gradient, less noise; README, deviation 26)."""
     post, _ = wm.rssm.observe(wm.encoder(batch["obs"]), batch["action"])
     return wm.reward(wm.rssm.feat(post)).squeeze(-1).sum(1)
 
@@ -1468,8 +1469,10 @@ class GraphedUpdate:
         return {"metrics": metrics, "timings": timings, "picks": picks}
 
     def capture(self, key: tuple, inputs: dict, plan: dict) -> types.SimpleNamespace:
-        """Record `update` on the static inputs; the metrics it returns become one vector. A larger memory-mode pool
-        retires the graphs of the smaller one, and the static tensors no graph reads any more."""
+        """Record `update` on the static inputs; the metrics it returns become one vector. A memory-mode pool padded
+        to another size retires the graphs of the old size (it may shrink too: a refresh's random phases change the
+        count of candidate chunks, so near a power of two the padding can switch back and forth, each switch a new
+        capture), and the static tensors no graph reads any more."""
         pool_rows = lambda k: dict(k[0]).get("pool_embed")  # noqa: E731
         self.graphs = {k: g for k, g in self.graphs.items() if pool_rows(k) == pool_rows(key)}
         wanted = {entry for k in [key, *self.graphs] for entry in k[0]}

@@ -4,10 +4,16 @@
 # docs/benchmarks.md, section "`--cuda-graph`: the whole update as CUDA graphs"):
 #   run(command="BUDGET=555 bash benchmarks/gpu_session.sh check graphs precision profile", carry=[".gpu"])
 #       # 256 s on an H100 on 2026-11-24 (its tables: results/benchmarks/2026-11-24-h100.json)
-#   run(command="BUDGET=570 PIXEL_WORKERS=2 PIXEL_ONLY='walker_stand__dreamer__s3 cartpole_balance__dreamer__s1' \
-#       bash benchmarks/gpu_session.sh pixels-start pixels-poll pixels-pack", carry=[".gpu"])
-#   run(command="BUDGET=585 bash benchmarks/gpu_session.sh pixels-poll pixels-pack", carry=[".gpu"])  # within 30 s
-#       # two pixel runs of 100k env steps side by side: 23.5 min (2026-11-24), so three calls in all
+# The next session lent a device, planned (2026-11-25, evening): issue 39's equivalence test on the current code first
+# (it last ran at 6e2e058, before the operator cuts; with it passed, 39's done-when is met), then issue 40's last
+# walker-stand seed with cartpole-balance's first beside it, under MPS. Two pixel runs of 100k env steps side by side
+# took 23.5 min without MPS (2026-11-24; MPS made two paper-size processes' updates 1.26x), so the three calls below
+# need a session of 30 device-minutes (the machine's start included); with 15, run walker_stand__dreamer__s3 alone
+# (~14 min: it does not fit either, see sweeps/walker_tables.toml's cost note). Issue each call within 30 s of the last:
+#   run(command="BUDGET=585 MPS=1 PIXEL_WORKERS=2 PIXEL_ONLY='walker_stand__dreamer__s3 cartpole_balance__dreamer__s1' \
+#       bash benchmarks/gpu_session.sh check pixels-start pixels-poll", carry=[".gpu"])
+#   run(command="BUDGET=585 bash benchmarks/gpu_session.sh pixels-poll", carry=[".gpu"])
+#   run(command="BUDGET=585 bash benchmarks/gpu_session.sh pixels-poll pixels-pack", carry=[".gpu"])
 #   run(command="BUDGET=430 COMPILE_MODES=loops KERNEL_METHODS='dreamer rbrama' KERNELS_PAPER=0 \
 #       bash benchmarks/gpu_session.sh share-bench compile kernels", carry=[".gpu"])
 #       # 334 s on an H100 on 2026-11-25, then `MPS=1 SHARE='state 1;state 16' ... share` (141 s) and
