@@ -761,6 +761,22 @@ def episode_folders(directory: str) -> list:
     return []
 
 
+def check_prior_task_vectors(args: Args, multitask: Replay):
+    """Table 2's protocol: the prior's episodes of this run's env ran on other task vectors than this run's (the prior
+    with --task-set train, the run with --task-set new, the same --seed and --num-tasks: the new set is the draws
+    after the first --num-tasks, so another --num-tasks or the same --task-set would share vectors)."""
+    for env_id in task_list(args):
+        name = make_env_spec(env_id)["name"]
+        ours = {v.tobytes() for v in task_vectors(name, args.task_set, args.seed, args.num_tasks)}  # float32 bytes
+        shared = sum(ep["task"] == name and "task_vector" in ep and
+                     np.asarray(ep["task_vector"], np.float32).tobytes() in ours for ep in multitask.episodes)
+        if shared:
+            raise UsageError(f"--prior-dirs: {shared} of the prior's episodes of {name} ran on this run's own task vectors "
+                             f"(--task-set {args.task_set}, --seed {args.seed}, --num-tasks {args.num_tasks}); collect "
+                             f"the prior with --task-set train and adapt with --task-set new, the same --seed and "
+                             f"--num-tasks")
+
+
 def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_size: int, rng) -> list:
     """The multitask buffer M: episodes of earlier runs, filtered by return, K of them at random."""
     paths = []
@@ -2268,6 +2284,7 @@ def main(args: Args, given: frozenset = frozenset()):
         counts = {t: multitask.tasks.count(t) for t in sorted(set(multitask.tasks))}
         print(f"multitask buffer: {len(multitask)} prior episodes {counts}, "
               f"{multitask.memory_bytes() / 2**30:.2f} GiB in memory", flush=True)
+        check_prior_task_vectors(args, multitask)
     task_paths = [run_path] if len(tasks) == 1 else [os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
                                                      for k, env_id in enumerate(tasks)]
     checkpoints = {p: read_checkpoint(os.path.join(p, "checkpoint.pt"), args) for p in task_paths}

@@ -23,7 +23,9 @@ The number per run is the paper's: the average training-episode return over the 
   with mean ± s.e. alone mislead. The IQM drops int(n/4) runs at each end, so with fewer than 4 seeds it equals
   the mean. The bootstrap is seeded, so the report is the same on every run of this command.
 A second table answers "does it beat Dreamer, and uniform mixing?": per task, each method's probability of
-improvement P(X > Y) over each, with its 95% bootstrap CI. A third says what the prior-data methods mixed into
+improvement P(X > Y) over each (and over the --against methods), with its 95% bootstrap CI and the exact two-sided
+rank test's p (Mann-Whitney: with 3-5 seeds, the test to read). Runs stopped before their --total-steps are marked
+unfinished in the tables; a run with a non-finite value is left out, with a warning. A third says what the prior-data methods mixed into
 their batches (from the runs' addressing/ logs): the share of other tasks' chunks, the returns and reward sums of
 what was picked against what could have been, how peaked q is, and what the bandit objective gained.
 scores.png shows every seed's number as a dot beside its method's mean ± s.e. The curves (curves.png) show, per
@@ -104,11 +106,22 @@ def load_experiment(folder: str, key: str) -> list:
             if len(values) == 0:
                 print(f"warning: {metrics_path}: no {key}, left out", file=sys.stderr)
                 continue
+            if not np.isfinite(values).all():  # one NaN would blank the run's mean and every cell it enters
+                print(f"warning: {metrics_path}: a non-finite {key}, left out", file=sys.stderr)
+                continue
+            # a run stopped before its --total-steps (each task of a sequence trains to it) averages fewer, and
+            # usually earlier, weaker episodes: it still counts, marked in the tables
+            total_steps = saved.get("total_steps")
+            finished = total_steps is None or steps[-1] >= total_steps
+            if not finished:
+                print(f"warning: {metrics_path}: stopped at step {int(steps[-1]):,} of --total-steps "
+                      f"{total_steps:,}: marked unfinished", file=sys.stderr)
             # the name the run's episodes carry (addressing/pick_fraction/<name>): <k>_<name> of a sequence's folder
             current = (os.path.basename(os.path.dirname(metrics_path)).split("_", 1)[1] if task != cell else
                        (saved.get("task_sequence") or saved["env_id"]).split(",")[0].split("/")[-1])
             runs.append({"task": task, "method": method, "seed": seed, "name": name, "steps": steps, "values": values,
-                         "metrics_path": metrics_path, "current_task": current})
+                         "metrics_path": metrics_path, "current_task": current, "total_steps": total_steps,
+                         "finished": finished})
     return runs
 
 
@@ -160,6 +173,18 @@ def improvement_ci(scores_x, scores_y, reps: int, seed: int) -> tuple:
     return bootstrap_ci([scores_x, scores_y], metrics.probability_of_improvement, reps, seed)
 
 
+def rank_test(scores_x, scores_y) -> float:
+    """The two-sided Mann-Whitney (Wilcoxon rank-sum) p-value of X against Y: exact when no two scores tie (run
+    averages are floats: in practice always), else the normal approximation. With few runs the bootstrap CI of
+    P(X > Y) is too narrow to read as a test (no overlap gives [1, 1] at any size); the rank test's smallest p is
+    2 / C(n_x + n_y, n_x): 0.10 for 3 runs against 3, 0.029 for 4 against 4, 0.008 for 5 against 5."""
+    from scipy.stats import mannwhitneyu
+
+    pooled = np.concatenate([np.asarray(scores_x, float), np.asarray(scores_y, float)])
+    method = "asymptotic" if len(np.unique(pooled)) < len(pooled) else "exact"
+    return float(mannwhitneyu(scores_x, scores_y, alternative="two-sided", method=method).pvalue)
+
+
 def method_order(methods) -> list:
     """The paper's rows in its order, then each preset's in that order, then any other."""
     presets = sorted({m.partition("@")[2] for m in methods} - {""})
@@ -172,7 +197,7 @@ def fmt(x: float, decimals: int) -> str:
 
 
 def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str,
-                 beside: tuple = (), reference: dict = None, levels: dict = None):
+                 beside: tuple = (), reference: dict = None, levels: dict = None, against: tuple = ()):
     runs = load_experiment(folder, key)
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
@@ -182,6 +207,9 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
         name = os.path.basename(os.path.normpath(other))  # its runs named `experiment/run` in the Runs table
         runs += [dict(r, name=f"{name}/{r['name']}") for r in load_experiment(other, key) if r["task"] in tasks]
     methods = method_order({r["method"] for r in runs})
+    missing = [m for m in against if m not in methods]
+    if missing:
+        sys.exit(f"error: --against {' '.join(missing)}: no such method in {folder} (there: {', '.join(methods)})")
     note = " (the paper's metric)" if key == "charts/episodic_return" else ""
     header = ["method"] + [f"{t}: {h}" for t in tasks for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]
     lines = [f"# {experiment}", "",
@@ -193,8 +221,10 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
              "",
              "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     scores = {}  # (task, method) -> each seed's run average, the number both tables start from
+    unfinished = {}  # (task, method) -> how many of its runs stopped before their --total-steps
     for r in runs:
         scores.setdefault((r["task"], r["method"]), []).append(r["values"].mean())
+        unfinished[(r["task"], r["method"])] = unfinished.get((r["task"], r["method"]), 0) + (not r["finished"])
     for method in methods:
         row = [method_name(method)]
         for task in tasks:
@@ -204,19 +234,25 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
             cell = scores[(task, method)]
             mean, se = mean_se(cell)
             iqm, low, high = iqm_ci(cell, reps, seed)
-            row += [f"{fmt(mean, decimals)} ± {fmt(se, decimals)} ({len(cell)})",
+            stopped = unfinished[(task, method)]
+            row += [f"{fmt(mean, decimals)} ± {fmt(se, decimals)} ({len(cell)}"
+                    + (f"; {stopped} unfinished)" if stopped else ")"),
                     f"{fmt(iqm, decimals)} [{fmt(low, decimals)}, {fmt(high, decimals)}]"]
         lines.append("| " + " | ".join(row) + " |")
+    if any(unfinished.values()):
+        lines += ["", "*unfinished*: runs stopped before their `--total-steps` (the Runs table says where); their "
+                  "averages hold fewer, mostly earlier episodes."]
     lines += ["", "Each seed's run average, and the mean ± s.e. over seeds:", "", "![scores per run](scores.png)"]
-    lines += improvement_table(scores, tasks, methods, reps, seed, decimals)
+    lines += improvement_table(scores, tasks, methods, reps, seed, against)
     lines += diagnostics_table(runs, tasks, methods, decimals)
     lines += reference_table(runs, tasks, methods, reference, decimals) if reference else []
     lines += levels_table(runs, tasks, methods, key, levels, decimals) if levels else []
     figure = "curves.png"
     lines += ["", f"![learning curves]({figure})", "", "## Runs", "",
               "| run | task | episodes | last env step | average return |", "| --- | --- | --- | --- | --- |"]
-    lines += [f"| {r['name']} | {r['task']} | {len(r['values'])} | {int(r['steps'][-1]):,} | "
-              f"{fmt(r['values'].mean(), decimals)} |" for r in runs]
+    lines += [f"| {r['name']} | {r['task']} | {len(r['values'])} | {int(r['steps'][-1]):,}"
+              + ("" if r["finished"] else f" of {r['total_steps']:,} (unfinished)")
+              + f" | {fmt(r['values'].mean(), decimals)} |" for r in runs]
     os.makedirs(out, exist_ok=True)
     with open(os.path.join(out, "report.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
@@ -227,18 +263,24 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     print(f"wrote {os.path.join(out, 'report.md')}, {os.path.join(out, figure)} and {os.path.join(out, 'scores.png')}")
 
 
-def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed: int, decimals: int) -> list:
-    """Markdown lines: per task, each method's probability of improvement over Dreamer and over uniform mixing.
-    scores: (task, method) -> the run averages of its seeds."""
-    # Dreamer, uniform mixing, and uniform mixing under each preset (the same configuration as the preset's rows)
+def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed: int, against: tuple = ()) -> list:
+    """Markdown lines: per task, each method's probability of improvement over Dreamer and over uniform mixing (and
+    over the --against methods), with its bootstrap CI and the rank test's p. scores: (task, method) -> the run
+    averages of its seeds."""
+    # Dreamer, uniform mixing, uniform mixing under each preset (the same configuration as the preset's rows), and
+    # the methods given with --against
     references = [m for m in ["dreamer", "uniform"] + [m for m in methods if m.startswith("uniform@")] if m in methods]
+    references += [m for m in against if m not in references]
     if not references or len(methods) < 2:
         return []
     header = ["method"] + [f"{t}: P(> {method_name(ref)})" for t in tasks for ref in references]
     lines = ["", "Does a method beat Dreamer, or uniform mixing? P(X > Y) is the probability that a run of the row's "
              "method scores higher than a run of the column's (ties count half; rliable's probability of "
-             f"improvement), with its 95% stratified-bootstrap CI ({reps} resamples, seed {seed}). 0.5 is no "
-             "difference; a CI that lies above 0.5 says the row's method is better with 95% confidence.", "",
+             f"improvement), with its 95% stratified-bootstrap CI (percentile, {reps} resamples, seed {seed}), and "
+             "p, the two-sided Mann-Whitney rank test's (exact). 0.5 is no difference. Read p, not the CI, as the "
+             "test: over so few runs the bootstrap CI is too narrow (when no run of one method scores below a run of "
+             "the other, every resample gives the same P, so the CI is [1.00, 1.00] even for 2 runs against 2). The "
+             "smallest p there is is 0.10 for 3 runs against 3, 0.029 for 4 against 4, 0.008 for 5 against 5.", "",
              "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     for method in methods:
         row = [method_name(method)]
@@ -248,8 +290,8 @@ def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed:
                 if method == ref or not x or not y:
                     row.append("–")
                     continue
-                p, low, high = improvement_ci(x, y, reps, seed)
-                row.append(f"{p:.{decimals}f} [{low:.{decimals}f}, {high:.{decimals}f}]")
+                p, low, high = improvement_ci(x, y, reps, seed)  # probabilities: 2 decimals, whatever --decimals
+                row.append(f"{p:.2f} [{low:.2f}, {high:.2f}], p {rank_test(x, y):.2g}")
         lines.append("| " + " | ".join(row) + " |")
     return lines
 
@@ -567,6 +609,9 @@ def main():
     parser.add_argument("--beside", nargs="+", default=[], metavar="FOLDER",
                         help="other experiment folders whose runs of the same tasks join the tables (e.g. the same "
                              "grid under another --preset)")
+    parser.add_argument("--against", nargs="+", default=[], metavar="METHOD",
+                        help="methods (as the report names them in its folders: vrama, vrama@authors-code) to compare "
+                             "every row with, beside Dreamer and uniform mixing")
     args = parser.parse_args()
     if args.runs:
         return plot_runs(args.runs, args.out or "curve.png", args.title, args.key)
@@ -580,6 +625,7 @@ def main():
         f" --{name} {getattr(args, name)}" for name in ("reps", "seed", "bins", "decimals")
         if getattr(args, name) != parser.get_default(name))
     options += f" --beside {' '.join(args.beside)}" if args.beside else ""  # one flag: a second --beside replaces
+    options += f" --against {' '.join(args.against)}" if args.against else ""
     reference = None
     if args.reference:
         try:
@@ -616,7 +662,8 @@ def main():
             out = args.out if args.out and len(experiments) == 1 else \
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
             write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals,
-                         options + (f" --out {out}" if args.out else ""), tuple(args.beside), reference, levels)
+                         options + (f" --out {out}" if args.out else ""), tuple(args.beside), reference, levels,
+                         tuple(args.against))
 
 
 if __name__ == "__main__":

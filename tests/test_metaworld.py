@@ -3,12 +3,14 @@ and few-step runs of every method with a tiny prior buffer."""
 import glob
 import json
 import os
+import re
 
 import numpy as np
 import pytest
 
 from helpers import TINY, run_script
-from rama_metaworld import ActionRepeat, MetaWorldEnv, UsageError, expert_action, make_env_spec, task_vectors
+from rama_metaworld import (ActionRepeat, MetaWorldEnv, UsageError, _sample_rand_vecs, expert_action, make_env_spec,
+                            task_vectors)
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +72,8 @@ def test_task_sets_distinct_and_disjoint():
     assert train.shape == (50, 6) and new.shape == (50, 6) and train.dtype == np.float32
     assert len(np.unique(train, axis=0)) == 50 and len(np.unique(new, axis=0)) == 50
     assert not (train[:, None] == new[None]).all(-1).any()
-    assert np.array_equal(train, task_vectors("push", "train", 0))  # seed-reproducible
+    _sample_rand_vecs.cache_clear()  # drawn again, not read from the cache: seed-reproducible
+    assert np.array_equal(train, task_vectors("push", "train", 0))
     assert not np.array_equal(train, task_vectors("push", "train", 1))  # runs differ (paper, Sec. 5)
     with pytest.raises(UsageError):
         task_vectors("push", "test", 0)
@@ -202,6 +205,20 @@ def test_every_method_runs_on_new_vectors(tmp_path, expert_prior, method):
     new = task_vectors("push", "new", 1)
     with np.load(sorted(glob.glob(os.path.join(run_path, "episodes", "*.npz")))[0]) as ep:
         assert any(np.allclose(ep["task_vector"], v) for v in new)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("flags", [[], ["--task-set", "new", "--num-tasks", "10"]])
+def test_a_prior_on_the_runs_own_task_vectors_is_refused(tmp_path, expert_prior, flags):
+    """The expert prior ran on the train set of 50 (seed 1). The same set, or the new set of 10, which is draws 10-19
+    of the same stream and so inside that train set, is refused before the run folder exists, in one line."""
+    proc = run("--env-id", "metaworld/push", "--method", "rrama", "--prior-dirs", expert_prior, *flags,
+               "--run-dir", str(tmp_path), *TINY, check=False)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    # all 2 expert episodes share the train set; of the new set of 10, those whose vector was one of draws 10-19
+    assert re.search(r"--prior-dirs: [12] of the prior's episodes of push ran on this run's own task vectors", lines[0])
+    assert not os.listdir(tmp_path)
 
 
 @pytest.mark.slow

@@ -79,6 +79,16 @@ def test_probability_of_improvement_by_hand():
     assert report.improvement_ci([5, 6], [1, 2, 3], reps=500, seed=0) == (1.0, 1.0, 1.0)
 
 
+def test_rank_test_by_hand():
+    """The exact two-sided Mann-Whitney p: of the C(6, 3) = 20 equally likely splits of 6 ranks into 3 + 3, one puts
+    all of X on top (U = 9) and one puts X on top but for one pair (U = 8)."""
+    assert report.rank_test([5, 6, 7], [1, 2, 3]) == pytest.approx(2 / 20)  # U = 9 or U = 0: 2 of 20
+    assert report.rank_test([2.5, 5, 9], [1, 2, 3]) == pytest.approx(4 / 20)  # U >= 8 or U <= 1: 4 of 20
+    assert report.rank_test([5, 6], [1, 2, 3]) == pytest.approx(2 / 10)  # C(5, 2) = 10 splits
+    assert report.rank_test([10, 11, 12, 13, 14], [1, 2, 3, 4, 5]) == pytest.approx(2 / 252)  # C(10, 5) = 252
+    assert report.rank_test([1, 2, 3], [1, 2, 3]) == pytest.approx(1.0)  # ties: the normal approximation, no difference
+
+
 @pytest.mark.slow
 def test_report_tables_by_hand(results):
     run_script("report.py", str(results.parent), "--reps", "500", "--decimals", "3")  # results/ holds experiments
@@ -99,7 +109,10 @@ def test_report_tables_by_hand(results):
     # P(RRAMa > Dreamer) on walk: [4, 5, 9] against [1, 2, 3, 10]: each beats 1, 2, 3 and loses to 10 -> 9 of 12
     improvement = next(line for line in text.splitlines() if line.startswith("| RRAMa") and "[0." in line)
     cells = [c.strip() for c in improvement.strip("|").split("|")]
-    assert cells[1:5] == ["–"] * 4 and cells[5].startswith("0.750 [")  # only walk has both; no uniform column
+    assert cells[1:5] == ["–"] * 4 and cells[5].startswith("0.75 [")  # only walk has both; no uniform column
+    # probabilities in 2 decimals whatever --decimals; p: 9 of 12 pairs, U = 9 of n_x·n_y = 12, the exact test's
+    # P(U >= 9) = 7 of the C(7, 3) = 35 splits, two-sided 14 / 35 = 0.4
+    assert cells[5].endswith("], p 0.4")
     assert "| walk__dreamer__s2 | walk | 2 | 200 | 2.000 |" in text  # the runs table (the resumed step counted once)
     assert "mixed batches" not in text  # no run logged addressing/ keys: no third table
     assert (results / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -232,6 +245,19 @@ def test_preset_runs_are_their_own_rows_beside_another_experiment(tmp_path):
                  and "±" not in line)
     cells = [c.strip() for c in rrama.strip("|").split("|")]
     assert cells[1].startswith("1.00 [") and cells[2].startswith("1.00 [")  # 3 beats 2 and 1
+    # 1 run against 2 (2 of C(3, 1) = 3 splits as extreme) and against 1: no evidence either way
+    assert cells[1].endswith(", p 0.67") and cells[2].endswith(", p 1")
+    # --against adds a column: RRAMa under the preset against itself is "–", uniform against it 0.00 (1 below 3)
+    run_script("report.py", str(authors), "--against", "rrama@authors-code", "--reps", "200")
+    text = (authors / "report.md").read_text()
+    assert f"`python report.py {authors} --reps 200 --against rrama@authors-code`" in text
+    header = next(line for line in text.splitlines() if line.startswith("| method") and "P(>" in line)
+    assert header.count("P(>") == 2 and header.endswith("walk: P(> RRAMa, authors' code) |")
+    uniform = next(line for line in text.splitlines() if line.startswith("| No addressing (uniform), authors' code")
+                   and "±" not in line)
+    assert [c.strip() for c in uniform.strip("|").split("|")][1:] == ["–", "0.00 [0.00, 0.00], p 1"]
+    bad = run_script("report.py", str(authors), "--against", "vrama", check=False)
+    assert bad.returncode != 0 and "--against vrama: no such method" in bad.stderr
     bad = run_script("report.py", str(authors), "--beside", str(tmp_path / "nope"), check=False)
     assert bad.returncode != 0 and "--beside" in bad.stderr and "no run folders" in bad.stderr
     assert report.method_order({"rrama@authors-code", "dreamer", "uniform@authors-code", "uniform"}) == [
@@ -324,3 +350,20 @@ def test_levels_table_and_lines_by_hand(tmp_path):
         bad = run_script("report.py", str(exp), "--levels", str(levels), check=False)
         assert bad.returncode != 0
         assert bad.stderr.strip() == f"error: --levels {levels}: not a levels file (AssertionError)"
+
+
+def test_unfinished_runs_are_marked_and_non_finite_ones_left_out(tmp_path):
+    """A run whose last step is below its --total-steps counts, marked in both tables; one with a NaN return would
+    blank its cells, so it is left out with a warning."""
+    exp = tmp_path / "results" / "exp"
+    for seed, returns in ((1, [1.0, 3.0]), (2, [5.0])):  # seed 2 stopped at step 100 of 200
+        write_run(exp, f"walk__dreamer__s{seed}", returns, {"env_id": "dmc/x", "method": "dreamer", "seed": seed,
+                                                          "total_steps": 200})
+    write_run(exp, "walk__dreamer__s3", [float("nan"), 1.0], {"env_id": "dmc/x", "method": "dreamer", "seed": 3})
+    out = run_script("report.py", str(exp), "--reps", "100")
+    assert "walk__dreamer__s2/metrics.jsonl: stopped at step 100 of --total-steps 200: marked unfinished" in out.stderr
+    assert "walk__dreamer__s3/metrics.jsonl: a non-finite charts/episodic_return, left out" in out.stderr
+    text = (exp / "report.md").read_text()
+    assert "| Dreamer | 3.5 ± 1.5 (2; 1 unfinished) |" in text  # (1 + 3) / 2 = 2 and 5: mean 3.5, s.e. 1.5
+    assert "| walk__dreamer__s2 | walk | 1 | 100 of 200 (unfinished) | 5.0 |" in text
+    assert "| walk__dreamer__s1 | walk | 2 | 200 | 2.0 |" in text and "s3" not in text
