@@ -491,6 +491,11 @@ class ActionRepeat(gymnasium.Wrapper):
 EPISODE_EXTRAS = ()  # the keys of reset's info an episode file stores as well (none for these envs)
 
 
+def check_prior_episodes(args: Args, multitask) -> None:
+    """What the prior's episodes (M, a Replay) must satisfy beyond matching shapes: nothing more for these envs
+    (rama_metaworld.py refuses a prior that ran on the adapting run's own task vectors)."""
+
+
 def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
     if env_id.startswith("kitchen/"):
         from kitchen_env import KitchenEnv
@@ -2152,6 +2157,7 @@ def main(args: Args, given: frozenset = frozenset()):
         counts = {t: multitask.tasks.count(t) for t in sorted(set(multitask.tasks))}
         print(f"multitask buffer: {len(multitask)} prior episodes {counts}, "
               f"{multitask.memory_bytes() / 2**30:.2f} GiB in memory", flush=True)
+        check_prior_episodes(args, multitask)
     task_paths = [run_path] if len(tasks) == 1 else [os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
                                                      for k, env_id in enumerate(tasks)]
     checkpoints = {p: read_checkpoint(os.path.join(p, "checkpoint.pt"), args) for p in task_paths}

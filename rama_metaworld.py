@@ -565,6 +565,23 @@ def expert_action(env: MetaWorldEnv) -> np.ndarray:
 EPISODE_EXTRAS = ("task_vector", "task_index")  # the keys of reset's info an episode file stores as well
 
 
+def check_prior_episodes(args: Args, multitask) -> None:
+    """Table 2's protocol, checked before the run starts: the prior's episodes (M, a Replay) of this run's env ran on
+    other task vectors than this run's (the prior with --task-set train, the run with --task-set new, the same --seed
+    and --num-tasks: the new set is the draws after the first --num-tasks, so another --num-tasks or the same
+    --task-set would share vectors)."""
+    for env_id in task_list(args):
+        name = make_env_spec(env_id)["name"]
+        ours = {v.tobytes() for v in task_vectors(name, args.task_set, args.seed, args.num_tasks)}  # float32 bytes
+        shared = sum(ep["task"] == name and "task_vector" in ep and
+                     np.asarray(ep["task_vector"], np.float32).tobytes() in ours for ep in multitask.episodes)
+        if shared:
+            raise UsageError(f"--prior-dirs: {shared} of the prior's episodes of {name} ran on this run's own task "
+                             f"vectors (--task-set {args.task_set}, --seed {args.seed}, --num-tasks {args.num_tasks}); "
+                             f"collect the prior with --task-set train and adapt with --task-set new, the same --seed "
+                             f"and --num-tasks")
+
+
 class ActionRepeat(gymnasium.Wrapper):
     """Each action repeated `repeat` env steps within `time_limit` env steps per episode, for every family (README):
     the rewards add up, success at any step counts, and an episode is truncated once it has taken time_limit env
@@ -759,22 +776,6 @@ def episode_folders(directory: str) -> list:
         if folders:
             return folders
     return []
-
-
-def check_prior_task_vectors(args: Args, multitask: Replay):
-    """Table 2's protocol: the prior's episodes of this run's env ran on other task vectors than this run's (the prior
-    with --task-set train, the run with --task-set new, the same --seed and --num-tasks: the new set is the draws
-    after the first --num-tasks, so another --num-tasks or the same --task-set would share vectors)."""
-    for env_id in task_list(args):
-        name = make_env_spec(env_id)["name"]
-        ours = {v.tobytes() for v in task_vectors(name, args.task_set, args.seed, args.num_tasks)}  # float32 bytes
-        shared = sum(ep["task"] == name and "task_vector" in ep and
-                     np.asarray(ep["task_vector"], np.float32).tobytes() in ours for ep in multitask.episodes)
-        if shared:
-            raise UsageError(f"--prior-dirs: {shared} of the prior's episodes of {name} ran on this run's own task vectors "
-                             f"(--task-set {args.task_set}, --seed {args.seed}, --num-tasks {args.num_tasks}); collect "
-                             f"the prior with --task-set train and adapt with --task-set new, the same --seed and "
-                             f"--num-tasks")
 
 
 def load_prior_episodes(dirs, min_return, max_episodes: int, obs_shape, action_size: int, rng) -> list:
@@ -2284,7 +2285,7 @@ def main(args: Args, given: frozenset = frozenset()):
         counts = {t: multitask.tasks.count(t) for t in sorted(set(multitask.tasks))}
         print(f"multitask buffer: {len(multitask)} prior episodes {counts}, "
               f"{multitask.memory_bytes() / 2**30:.2f} GiB in memory", flush=True)
-        check_prior_task_vectors(args, multitask)
+        check_prior_episodes(args, multitask)
     task_paths = [run_path] if len(tasks) == 1 else [os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
                                                      for k, env_id in enumerate(tasks)]
     checkpoints = {p: read_checkpoint(os.path.join(p, "checkpoint.pt"), args) for p in task_paths}

@@ -25,9 +25,10 @@ The number per run is the paper's: the average training-episode return over the 
 A second table answers "does it beat Dreamer, and uniform mixing?": per task, each method's probability of
 improvement P(X > Y) over each (and over the --against methods), with its 95% bootstrap CI and the exact two-sided
 rank test's p (Mann-Whitney: with 3-5 seeds, the test to read). Runs stopped before their --total-steps are marked
-unfinished in the tables; a run with a non-finite value is left out, with a warning. A third says what the prior-data methods mixed into
-their batches (from the runs' addressing/ logs): the share of other tasks' chunks, the returns and reward sums of
-what was picked against what could have been, how peaked q is, and what the bandit objective gained.
+unfinished in the tables; a run with a non-finite value is left out, with a warning. A third says what the
+prior-data methods mixed into their batches (from the runs' addressing/ logs): the share of other tasks' chunks,
+the returns and reward sums of what was picked against what could have been, how peaked q is, and what the bandit
+objective gained.
 scores.png shows every seed's number as a dot beside its method's mean ± s.e. The curves (curves.png) show, per
 task, one line per method. Each run's returns are averaged in --bins equal bins of environment steps; the line is
 the mean over seeds of those bin averages, and the band is ± one s.e.
