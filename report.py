@@ -281,7 +281,7 @@ def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed:
              "p, the two-sided Mann-Whitney rank test's (exact). 0.5 is no difference. Read p, not the CI, as the "
              "test: over so few runs the bootstrap CI is too narrow (when no run of one method scores below a run of "
              "the other, every resample gives the same P, so the CI is [1.00, 1.00] even for 2 runs against 2). The "
-             "smallest p there is is 0.10 for 3 runs against 3, 0.029 for 4 against 4, 0.008 for 5 against 5.", "",
+             "smallest possible p is 0.10 for 3 runs against 3, 0.029 for 4 against 4, 0.008 for 5 against 5.", "",
              "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     for method in methods:
         row = [method_name(method)]
