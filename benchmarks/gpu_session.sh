@@ -38,11 +38,13 @@
 #              left it (args.json, metrics.jsonl and the priors' kept episodes) and every run's log tail. Checked on
 #              a CPU with a tiny grid (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec); pixels-start and -poll are
 #              the same code on sweeps/pixels_dreamer.toml
-# Issue 41 (walker tables), planned, not yet run: first walk's M and the pilots not yet committed (4 runs; stand's M
-# and pilot_paper_kl's seeds 0-1 were made on the CPU and are skipped), then the tables, 16 runs at a time under MPS
-# (2026-11-25: 16 state-mode runs side by side made 9x one run's env steps/s; without MPS runs only take turns):
-#   run(command="BUDGET=585 MPS=1 SPEC=sweeps/walker_tables.toml ONLY='prior_* pilot_*' WORKERS=16 \
-#       bash benchmarks/gpu_session.sh sweep-start sweep-poll sweep-pack", carry=[".gpu"])
+# Issue 41 (walker tables), planned, not yet run. Stand's M and the CPU pilots are committed; walk's M (prior_walk,
+# 300k) is being made on a CPU (2026-11-25, resumable from runs/ on that machine). If it is not committed when a
+# session is lent, make it there with the last pilot beside it (~30 min alone: a session of 30 device-minutes):
+#   run(command="BUDGET=585 MPS=1 SPEC=sweeps/walker_tables.toml ONLY='prior_walk* pilot_paper_sizes*' WORKERS=2 \
+#       bash benchmarks/gpu_session.sh sweep-start sweep-poll", carry=[".gpu"])   # then sweep-poll, sweep-pack
+# then the tables, 16 runs at a time under MPS (2026-11-25: 16 state-mode runs side by side made 9x one run's env
+# steps/s; without MPS runs only take turns), in the five batches listed in sweeps/walker_tables.toml.
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
 mkdir -p "$OUT"
