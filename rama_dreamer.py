@@ -1175,7 +1175,7 @@ def select_chunks(one_hot, chunks):
 @torch.no_grad()
 def predicted_reward_sum(wm: WorldModel, batch: dict):
     """Σ_t of the reward head's mean on the posterior states of each chunk: (B,), the bandit's reward (Eqs. 2-3,
-    whose r_t ~ p(r_t | s_t) is replaced by its mean: the same expected gradient, less noise; README, deviation 26)."""
+    whose r_t ~ p(r_t | s_t) is replaced by its mean, as in the authors' code: README, deviation 26)."""
     post, _ = wm.rssm.observe(wm.encoder(batch["obs"]), batch["action"])
     return wm.reward(wm.rssm.feat(post)).squeeze(-1).sum(1)
 

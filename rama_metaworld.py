@@ -568,8 +568,8 @@ EPISODE_EXTRAS = ("task_vector", "task_index")  # the keys of reset's info an ep
 def check_prior_episodes(args: Args, multitask) -> None:
     """Table 2's protocol, checked before the run starts: the prior's episodes (M, a Replay) of this run's env ran on
     other task vectors than this run's (the prior with --task-set train, the run with --task-set new, the same --seed
-    and --num-tasks: the new set is the draws after the first --num-tasks, so another --num-tasks or the same
-    --task-set would share vectors)."""
+    and --num-tasks: the new set is the draws after the first --num-tasks, so the same --task-set, or a run's smaller
+    --num-tasks than the prior's, would share vectors)."""
     for env_id in task_list(args):
         name = make_env_spec(env_id)["name"]
         ours = {v.tobytes() for v in task_vectors(name, args.task_set, args.seed, args.num_tasks)}  # float32 bytes
@@ -1303,7 +1303,7 @@ def select_chunks(one_hot, chunks):
 @torch.no_grad()
 def predicted_reward_sum(wm: WorldModel, batch: dict):
     """Σ_t of the reward head's mean on the posterior states of each chunk: (B,), the bandit's reward (Eqs. 2-3,
-    whose r_t ~ p(r_t | s_t) is replaced by its mean: the same expected gradient, less noise; README, deviation 26)."""
+    whose r_t ~ p(r_t | s_t) is replaced by its mean, as in the authors' code: README, deviation 26)."""
     post, _ = wm.rssm.observe(wm.encoder(batch["obs"]), batch["action"])
     return wm.reward(wm.rssm.feat(post)).squeeze(-1).sum(1)
 

@@ -113,16 +113,17 @@ def load_experiment(folder: str, key: str) -> list:
             # a run stopped before its --total-steps (each task of a sequence trains to it) averages fewer, and
             # usually earlier, weaker episodes: it still counts, marked in the tables
             total_steps = saved.get("total_steps")
-            finished = total_steps is None or steps[-1] >= total_steps
+            last_step = max(max(by_step) for by_step in read_metrics(metrics_path).values())  # any key: some log
+            finished = total_steps is None or last_step >= total_steps  # per round or per evaluation, not at the end
             if not finished:
-                print(f"warning: {metrics_path}: stopped at step {int(steps[-1]):,} of --total-steps "
+                print(f"warning: {metrics_path}: stopped at step {last_step:,} of --total-steps "
                       f"{total_steps:,}: marked unfinished", file=sys.stderr)
             # the name the run's episodes carry (addressing/pick_fraction/<name>): <k>_<name> of a sequence's folder
             current = (os.path.basename(os.path.dirname(metrics_path)).split("_", 1)[1] if task != cell else
                        (saved.get("task_sequence") or saved["env_id"]).split(",")[0].split("/")[-1])
             runs.append({"task": task, "method": method, "seed": seed, "name": name, "steps": steps, "values": values,
                          "metrics_path": metrics_path, "current_task": current, "total_steps": total_steps,
-                         "finished": finished})
+                         "last_step": last_step, "finished": finished})
     return runs
 
 
@@ -175,14 +176,15 @@ def improvement_ci(scores_x, scores_y, reps: int, seed: int) -> tuple:
 
 
 def rank_test(scores_x, scores_y) -> float:
-    """The two-sided Mann-Whitney (Wilcoxon rank-sum) p-value of X against Y: exact when no two scores tie (run
-    averages are floats: in practice always), else the normal approximation. With few runs the bootstrap CI of
-    P(X > Y) is too narrow to read as a test (no overlap gives [1, 1] at any size); the rank test's smallest p is
-    2 / C(n_x + n_y, n_x): 0.10 for 3 runs against 3, 0.029 for 4 against 4, 0.008 for 5 against 5."""
-    from scipy.stats import mannwhitneyu
+    """The two-sided Mann-Whitney (Wilcoxon rank-sum) p-value of X against Y, exact: from the U distribution when no
+    two scores tie, else by permutation (every split enumerated for a few runs; seeded beyond). With few runs the
+    bootstrap CI of P(X > Y) is too narrow to read as a test (no overlap gives [1, 1] at any size); the rank test's
+    smallest p is 2 / C(n_x + n_y, n_x): 0.10 for 3 runs against 3, 0.029 for 4 against 4, 0.008 for 5 against 5."""
+    from scipy.stats import PermutationMethod, mannwhitneyu
 
     pooled = np.concatenate([np.asarray(scores_x, float), np.asarray(scores_y, float)])
-    method = "asymptotic" if len(np.unique(pooled)) < len(pooled) else "exact"
+    tied = len(np.unique(pooled)) < len(pooled)  # scipy's "exact" ignores ties; a permutation test does not
+    method = PermutationMethod(rng=np.random.default_rng(0)) if tied else "exact"
     return float(mannwhitneyu(scores_x, scores_y, alternative="two-sided", method=method).pvalue)
 
 
@@ -252,7 +254,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     lines += ["", f"![learning curves]({figure})", "", "## Runs", "",
               "| run | task | episodes | last env step | average return |", "| --- | --- | --- | --- | --- |"]
     lines += [f"| {r['name']} | {r['task']} | {len(r['values'])} | {int(r['steps'][-1]):,}"
-              + ("" if r["finished"] else f" of {r['total_steps']:,} (unfinished)")
+              + ("" if r["finished"] else f" (unfinished: stopped at {r['last_step']:,} of {r['total_steps']:,})")
               + f" | {fmt(r['values'].mean(), decimals)} |" for r in runs]
     os.makedirs(out, exist_ok=True)
     with open(os.path.join(out, "report.md"), "w") as f:
@@ -614,6 +616,8 @@ def main():
                         help="methods (as the report names them in its folders: vrama, vrama@authors-code) to compare "
                              "every row with, beside Dreamer and uniform mixing")
     args = parser.parse_args()
+    if args.runs and args.against:
+        parser.error("--against: for the tables of an experiment folder, not with --runs")
     if args.runs:
         return plot_runs(args.runs, args.out or "curve.png", args.title, args.key)
     if args.key and len(args.key) > 1:
@@ -659,6 +663,8 @@ def main():
             sorted({os.path.dirname(os.path.dirname(p)) for p in glob.glob(os.path.join(folder, "*", "*", "args.json"))})
         if not experiments:
             sys.exit(f"error: {folder}: holds no run folders (<run>/args.json) and no experiments")
+        if args.against and (len(experiments) > 1 or len(args.folders) > 1):  # names one experiment's methods
+            sys.exit("error: --against: give one experiment folder (it names that experiment's methods)")
         for experiment in experiments:
             out = args.out if args.out and len(experiments) == 1 else \
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment

@@ -86,7 +86,9 @@ def test_rank_test_by_hand():
     assert report.rank_test([2.5, 5, 9], [1, 2, 3]) == pytest.approx(4 / 20)  # U >= 8 or U <= 1: 4 of 20
     assert report.rank_test([5, 6], [1, 2, 3]) == pytest.approx(2 / 10)  # C(5, 2) = 10 splits
     assert report.rank_test([10, 11, 12, 13, 14], [1, 2, 3, 4, 5]) == pytest.approx(2 / 252)  # C(10, 5) = 252
-    assert report.rank_test([1, 2, 3], [1, 2, 3]) == pytest.approx(1.0)  # ties: the normal approximation, no difference
+    # ties: by permutation, still exact: [5, 5, 6] above [1, 2, 3] is as extreme as it gets, 2 of 20
+    assert report.rank_test([5, 5, 6], [1, 2, 3]) == pytest.approx(2 / 20)
+    assert report.rank_test([1, 2, 3], [1, 2, 3]) == pytest.approx(1.0)
 
 
 @pytest.mark.slow
@@ -258,6 +260,9 @@ def test_preset_runs_are_their_own_rows_beside_another_experiment(tmp_path):
     assert [c.strip() for c in uniform.strip("|").split("|")][1:] == ["–", "0.00 [0.00, 0.00], p 1"]
     bad = run_script("report.py", str(authors), "--against", "vrama", check=False)
     assert bad.returncode != 0 and "--against vrama: no such method" in bad.stderr
+    for flags in (["--runs", str(authors / "walk__rrama__s1")], [str(tmp_path / "results")]):  # not one experiment
+        bad = run_script("report.py", *flags, "--against", "uniform", check=False)
+        assert bad.returncode != 0 and "--against" in bad.stderr.strip().splitlines()[-1]
     bad = run_script("report.py", str(authors), "--beside", str(tmp_path / "nope"), check=False)
     assert bad.returncode != 0 and "--beside" in bad.stderr and "no run folders" in bad.stderr
     assert report.method_order({"rrama@authors-code", "dreamer", "uniform@authors-code", "uniform"}) == [
@@ -357,13 +362,19 @@ def test_unfinished_runs_are_marked_and_non_finite_ones_left_out(tmp_path):
     blank its cells, so it is left out with a warning."""
     exp = tmp_path / "results" / "exp"
     for seed, returns in ((1, [1.0, 3.0]), (2, [5.0])):  # seed 2 stopped at step 100 of 200
-        write_run(exp, f"walk__dreamer__s{seed}", returns, {"env_id": "dmc/x", "method": "dreamer", "seed": seed,
-                                                          "total_steps": 200})
+        write_run(exp, f"walk__dreamer__s{seed}", returns, {"env_id": "dmc/x", "method": "dreamer",
+                                                          "seed": seed, "total_steps": 200})
+    first = exp / "walk__dreamer__s1" / "metrics.jsonl"  # its losses/kl as a per-round key: none after the last round
+    first.write_text("".join(line + "\n" for line in first.read_text().splitlines() if "losses/kl\": 1.0}" not in line
+                             or not line.startswith('{"step": 200')))
     write_run(exp, "walk__dreamer__s3", [float("nan"), 1.0], {"env_id": "dmc/x", "method": "dreamer", "seed": 3})
     out = run_script("report.py", str(exp), "--reps", "100")
     assert "walk__dreamer__s2/metrics.jsonl: stopped at step 100 of --total-steps 200: marked unfinished" in out.stderr
     assert "walk__dreamer__s3/metrics.jsonl: a non-finite charts/episodic_return, left out" in out.stderr
     text = (exp / "report.md").read_text()
     assert "| Dreamer | 3.5 ± 1.5 (2; 1 unfinished) |" in text  # (1 + 3) / 2 = 2 and 5: mean 3.5, s.e. 1.5
-    assert "| walk__dreamer__s2 | walk | 1 | 100 of 200 (unfinished) | 5.0 |" in text
+    assert "| walk__dreamer__s2 | walk | 1 | 100 (unfinished: stopped at 100 of 200) | 5.0 |" in text
+    # finished is read from the last step of any key: a per-round key ends before the last episode's step
+    out = run_script("report.py", str(exp), "--reps", "100", "--key", "losses/kl")
+    assert "walk__dreamer__s1/metrics.jsonl: stopped" not in out.stderr and "walk__dreamer__s2" in out.stderr
     assert "| walk__dreamer__s1 | walk | 2 | 200 | 2.0 |" in text and "s3" not in text
