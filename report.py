@@ -78,7 +78,12 @@ def read_metrics(metrics_path: str) -> dict:
 
 def read_series(metrics_path: str, key: str):
     """(steps, values) of one key, in step order."""
-    by_step = read_metrics(metrics_path).get(key, {})
+    return series(read_metrics(metrics_path), key)
+
+
+def series(by_key: dict, key: str):
+    """(steps, values) of one key of read_metrics' dict, in step order."""
+    by_step = by_key.get(key, {})
     steps = sorted(by_step)
     return np.array(steps, dtype=float), np.array([by_step[s] for s in steps], dtype=float)
 
@@ -103,7 +108,8 @@ def load_experiment(folder: str, key: str) -> list:
             tasks = [(f"{cell}/{os.path.basename(os.path.dirname(p))}", p)
                      for p in sorted(glob.glob(os.path.join(run_path, "*", "metrics.jsonl")))]
         for task, metrics_path in tasks:
-            steps, values = read_series(metrics_path, key)
+            by_key = read_metrics(metrics_path)  # read once: the key's series and the run's last step
+            steps, values = series(by_key, key)
             if len(values) == 0:
                 print(f"warning: {metrics_path}: no {key}, left out", file=sys.stderr)
                 continue
@@ -113,7 +119,7 @@ def load_experiment(folder: str, key: str) -> list:
             # a run stopped before its --total-steps (each task of a sequence trains to it) averages fewer, and
             # usually earlier, weaker episodes: it still counts, marked in the tables
             total_steps = saved.get("total_steps")
-            last_step = max(max(by_step) for by_step in read_metrics(metrics_path).values())  # any key: some log
+            last_step = max(max(by_step) for by_step in by_key.values())  # over every key: some log
             finished = total_steps is None or last_step >= total_steps  # per round or per evaluation, not at the end
             if not finished:
                 print(f"warning: {metrics_path}: stopped at step {last_step:,} of --total-steps "
