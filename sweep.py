@@ -4,6 +4,7 @@
     python sweep.py sweeps/cartpole_tables.toml --workers 2              # 2 runs at a time, OMP_NUM_THREADS = cores / 2
     OMP_NUM_THREADS=1 python sweep.py sweeps/cartpole_tables.toml        # a given OMP_NUM_THREADS is kept: cores shared
     python sweep.py sweeps/cartpole_tables.toml --ray-address auto       # each run a Ray task on a running cluster
+    python sweep.py sweeps/walker_tables.toml --workers 4 --max-runs 4   # a grid in parts: 4 runs still to do
 
 The spec (see sweeps/*.toml) names the script, the flags common to every run, and cells. A cell has its own flags
 (and may name its own `script`, e.g. rama_metaworld.py beside rama_dreamer.py cells),
@@ -226,6 +227,13 @@ def select(runs: list, patterns: list) -> list:
     return with_priors(runs, {r.name for r in runs if any(fnmatch.fnmatchcase(r.name, p) for p in patterns)})
 
 
+def first_runs(runs: list, todo: list, count: int) -> list:
+    """--max-runs: the first `count` runs of `todo`, lowest seed first (then in spec order), so that a grid cut short
+    holds whole seeds; and the priors among `todo` that they need (beyond the count: without them they cannot run)."""
+    chosen = sorted(todo, key=lambda r: (int(last_value(r.flags, "--seed")), runs.index(r)))[:count]
+    return with_priors(runs, {r.name for r in chosen}, lambda prior: prior in todo)
+
+
 def command(run: Run, python: str = None) -> list:
     """The script's command line: --resume the run folder if the run has started, else the spec's flags."""
     python = python or sys.executable  # looked up when called: on Ray, the worker's interpreter
@@ -389,7 +397,12 @@ def main():
     parser.add_argument("--only", nargs="+", default=None, metavar="PATTERN",
                         help="run only the runs whose names match one of these patterns (fnmatch, e.g. '*__dreamer__*')"
                              ", and the priors they need")
+    parser.add_argument("--max-runs", type=int, default=None, metavar="N",
+                        help="run at most N of the runs still to do (lowest seed first), and the priors they need: "
+                             "a grid in parts, each finished within a time-limited allocation (a device session)")
     args = parser.parse_args()
+    if args.max_runs is not None and args.max_runs < 1:
+        parser.error(f"--max-runs must be >= 1 (got {args.max_runs})")
     if args.ray_address:  # Ray workers may start in another folder: give them absolute paths (shared filesystem)
         args.runs_dir, args.results_dir = os.path.abspath(args.runs_dir), os.path.abspath(args.results_dir)
     try:
@@ -402,17 +415,20 @@ def main():
         if not runs:
             print(f"error: --only {' '.join(args.only)}: no run of {args.spec} matches", file=sys.stderr)
             sys.exit(2)
-    todo = to_run(runs)
+    pending = to_run(runs)
     for run in runs:  # results/ deleted or not yet committed here: copy them again from the done runs
-        if run not in todo and not os.path.exists(os.path.join(run.results, "args.json")) and not args.dry_run:
+        if run not in pending and not os.path.exists(os.path.join(run.results, "args.json")) and not args.dry_run:
             save_results(run)
             print(f"{run.name}: results copied again to {run.results}")
-    print(f"sweep {experiment}: {len(runs)} runs, {len(runs) - len(todo)} done already, {len(todo)} to run "
-          f"(folders under {os.path.join(args.runs_dir, experiment)})", flush=True)
+    todo = pending if args.max_runs is None else first_runs(runs, pending, args.max_runs)
+    print(f"sweep {experiment}: {len(runs)} runs, {len(runs) - len(pending)} done already, {len(pending)} to run"
+          + (f", {len(todo)} of them now (--max-runs {args.max_runs})" if len(todo) < len(pending) else "")
+          + f" (folders under {os.path.join(args.runs_dir, experiment)})", flush=True)
     if args.dry_run:
         for run in runs:
             try:
-                state = "done" if run not in todo else "resume" if run_folder(run.folder) else "new"
+                state = ("done" if run not in pending else "later" if run not in todo
+                         else "resume" if run_folder(run.folder) else "new")
                 print(f"{run.name} [{state}]" + ("" if state == "done" else f": {shlex.join(command(run, 'python'))}"))
             except RunFailed as e:  # a folder that holds two runs
                 print(f"{run.name} [error]: {e}")

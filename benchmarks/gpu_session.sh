@@ -4,12 +4,13 @@
 # docs/benchmarks.md, section "`--cuda-graph`: the whole update as CUDA graphs"):
 #   run(command="BUDGET=555 bash benchmarks/gpu_session.sh check graphs precision profile", carry=[".gpu"])
 #       # 256 s on an H100 on 2026-11-24 (its tables: results/benchmarks/2026-11-24-h100.json)
-# The next session lent a device, planned (2026-11-25, evening): issue 39's equivalence test on the current code first
-# (it last ran at 6e2e058, before the operator cuts; with it passed, 39's done-when is met), then issue 40's last
-# walker-stand seed with cartpole-balance's first beside it, under MPS. Two pixel runs of 100k env steps side by side
-# took 23.5 min without MPS (2026-11-24; MPS made two paper-size processes' updates 1.26x), so the three calls below
-# need a session of 30 device-minutes (the machine's start included); with 15, run walker_stand__dreamer__s3 alone
-# (~14 min: it does not fit either, see sweeps/walker_tables.toml's cost note). Issue each call within 30 s of the last:
+# The next session lent a device, planned (2026-11-26), for sessions of 15 device-minutes (the workplace's limit since
+# 2026-11-25): issue 39's equivalence test on the current code first (it last ran at 6e2e058, before the operator
+# cuts; with it passed, 39's done-when is met), then the first part of issue 41's walker grid (sweeps/walker_tables.toml
+# has the two calls every session makes; add `check` before `sweep-start` in the first). Issue 40's last walker-stand
+# seed does not fit such a session: one 100k-step pixel run alone needs ~14 min (10k graphed updates x 53 ms, 100k env
+# steps collected at ~430/s, 5 evaluations of 5 episodes), and runs do not outlive their session. In a session of 30
+# device-minutes, it and cartpole-balance's first seed, side by side under MPS (two took 23.5 min without it):
 #   run(command="BUDGET=585 MPS=1 PIXEL_WORKERS=2 PIXEL_ONLY='walker_stand__dreamer__s3 cartpole_balance__dreamer__s1' \
 #       bash benchmarks/gpu_session.sh check pixels-start pixels-poll", carry=[".gpu"])
 #   run(command="BUDGET=585 bash benchmarks/gpu_session.sh pixels-poll", carry=[".gpu"])
@@ -33,18 +34,18 @@
 #              with it, and 1/2 paper-size ones with it: updates/s in all
 #   pixels-start, pixels-poll, pixels-pack   issue 40's walker-stand seeds (sweeps/pixels_dreamer.toml) across calls
 #   sweep-start, sweep-poll, sweep-pack      any spec the same way (issue 41: SPEC=sweeps/walker_tables.toml), with
-#              ONLY (sweep.py --only patterns), WORKERS (runs side by side) and FLAGS (added to the spec's); the poll
+#              ONLY (sweep.py --only patterns), MAX_RUNS (sweep.py --max-runs: at most that many of the runs still
+#              to do, lowest seed first), WORKERS (runs side by side) and FLAGS (added to the spec's); the poll
 #              returns as soon as the sweep has ended, and the pack brings back results/<experiment>/ as sweep.py
 #              left it (args.json, metrics.jsonl and the priors' kept episodes) and every run's log tail. Checked on
 #              a CPU with a tiny grid (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec); pixels-start and -poll are
 #              the same code on sweeps/pixels_dreamer.toml
 # Issue 41 (walker tables), planned, not yet run. Stand's M and the CPU pilots are committed; walk's M (prior_walk,
-# 300k) is being made on a CPU (2026-11-25, resumable from runs/ on that machine). If it is not committed when a
-# session is lent, make it there with the last pilot beside it (~30 min alone: a session of 30 device-minutes):
-#   run(command="BUDGET=585 MPS=1 SPEC=sweeps/walker_tables.toml ONLY='prior_walk* pilot_paper_sizes*' WORKERS=2 \
+# 300k) is being made on a CPU (resumable from runs/ on that machine). If it is not committed when a session of 30
+# device-minutes is lent, make it there (~30 min alone: it does not fit a session of 15):
+#   run(command="BUDGET=585 MPS=1 SPEC=sweeps/walker_tables.toml ONLY='prior_walk*' WORKERS=1 \
 #       bash benchmarks/gpu_session.sh sweep-start sweep-poll", carry=[".gpu"])   # then sweep-poll, sweep-pack
-# then the tables, 16 runs at a time under MPS (2026-11-25: 16 state-mode runs side by side made 9x one run's env
-# steps/s; without MPS runs only take turns), in the five batches listed in sweeps/walker_tables.toml.
+# then the tables in parts of MAX_RUNS runs side by side under MPS, one part per session (sweeps/walker_tables.toml).
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
 mkdir -p "$OUT"
@@ -64,7 +65,8 @@ cap() { local l; l=$(left); [ "$l" -lt "$1" ] && echo "$l" || echo "$1"; }  # a 
 start_sweep() {
   mkdir -p "$ST"; sed "s|^flags = \"\"\"|flags = \"\"\"$4 |" "$1" > "$ST/spec.toml"
   grep -A1 '^flags = """' "$ST/spec.toml" | tee "$OUT/$(basename "$1" .toml)-spec.txt"
-  set -f; setsid nohup python3 sweep.py "$ST/spec.toml" --workers "$3" ${2:+--only $2} > "$ST/sweep.log" 2>&1 < /dev/null &
+  set -f; setsid nohup python3 sweep.py "$ST/spec.toml" --workers "$3" ${2:+--only $2} ${MAX_RUNS:+--max-runs $MAX_RUNS} \
+    > "$ST/sweep.log" 2>&1 < /dev/null &
   set +f; echo $! > "$ST/pid"; sleep 5; cat "$ST/sweep.log"
 }
 

@@ -141,6 +141,35 @@ prior = "prior"
     assert names(sweep.to_run(runs)) == ["task__rrama__s1"]
 
 
+def test_max_runs_takes_the_lowest_seeds_first_with_the_priors_they_need(tmp_path):
+    spec = write_spec(tmp_path, """
+seeds = [1, 2]
+[cells.prior]
+seeds = [3]
+[cells.task]
+methods = ["dreamer", "uniform"]
+prior = "prior"
+""")
+    runs = sweep.load_spec(spec, str(tmp_path / "runs"), str(tmp_path / "results"))[1]
+    names = lambda rs: [r.name for r in rs]  # noqa: E731
+    todo = sweep.to_run(runs)
+    # seed 1's two runs come first (returned in spec order); uniform's prior (seed 3, serving every seed) comes with it, beyond the count
+    assert names(sweep.first_runs(runs, todo, 2)) == ["prior__dreamer__s3", "task__dreamer__s1", "task__uniform__s1"]
+    assert names(sweep.first_runs(runs, todo, 1)) == ["task__dreamer__s1"]
+    assert names(sweep.first_runs(runs, todo, 9)) == names(todo)
+    os.makedirs(runs[0].results)  # the prior done on another machine, its episodes not here: it still runs
+    open(os.path.join(runs[0].results, "args.json"), "w").close()
+    os.makedirs(os.path.join(runs[0].folder, "dmc_run"))  # ...unless its run folder is here
+    open(os.path.join(runs[0].folder, "dmc_run", "args.json"), "w").close()
+    todo = sweep.to_run(runs)
+    assert names(sweep.first_runs(runs, todo, 3)) == ["task__dreamer__s1", "task__dreamer__s2", "task__uniform__s1"]
+    out = sweep_cli(tmp_path, spec, "--dry-run", "--max-runs", "3").stdout
+    assert "4 to run, 3 of them now (--max-runs 3)" in out
+    assert "task__uniform__s2 [later]" in out and "task__dreamer__s2 [new]" in out and "prior__dreamer__s3 [done]" in out
+    refused = run_script("sweep.py", spec, "--dry-run", "--max-runs", "0", check=False)
+    assert refused.returncode == 2 and "--max-runs must be >= 1 (got 0)" in refused.stderr
+
+
 def test_kept_prior_episodes_stand_in_for_a_prior_run_folder_on_another_machine(tmp_path):
     import numpy as np
 
@@ -272,8 +301,8 @@ def test_local_sweep_resumes_a_killed_run_then_skips_done_runs(tmp_path):
 @pytest.mark.slow
 def test_gpu_session_sweep_stages_run_a_spec(tmp_path):
     """benchmarks/gpu_session.sh's sweep-start, sweep-poll and sweep-pack (issue 41's GPU calls) on a CPU: the tiny
-    grid runs detached, the poll returns when it has ended (not at the call's deadline), and the archive holds
-    results/<experiment>/ as sweep.py wrote it, with the sweep's log and each run's log tail."""
+    grid runs detached in two parts (MAX_RUNS), the poll returns when it has ended (not at the call's deadline), and
+    the archive holds results/<experiment>/ as sweep.py wrote it, with the sweep's log and each run's log tail."""
     import tarfile
 
     for name in ("sweep.py", "rama_dreamer.py", "kitchen_env.py", "report.py", "benchmarks/gpu_session.sh"):
@@ -284,11 +313,17 @@ def test_gpu_session_sweep_stages_run_a_spec(tmp_path):
     env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"],
                OUT=str(tmp_path / "out"), SWEEP_TMP=str(tmp_path / "st"), SPEC="sweeps/tiny.toml", WORKERS="1",
                BUDGET="400", OMP_NUM_THREADS="1")
+    stages = ["bash", "benchmarks/gpu_session.sh", "sweep-start", "sweep-poll", "sweep-pack"]
+    # the grid in two parts, as in device sessions too short for all of it: MAX_RUNS=1 runs Dreamer alone
+    proc = subprocess.run(stages, cwd=tmp_path, env=dict(env, MAX_RUNS="1"), capture_output=True, text=True,
+                          timeout=420)
+    assert "2 to run, 1 of them now (--max-runs 1)" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "[1/1] balance__dreamer__s1: finished in" in proc.stdout and "uniform" not in proc.stdout.split("now")[1]
     start = time.time()
-    proc = subprocess.run(["bash", "benchmarks/gpu_session.sh", "sweep-start", "sweep-poll", "sweep-pack"],
-                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=420)
+    proc = subprocess.run(stages, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=420)
     assert time.time() - start < 300, proc.stdout[-2000:]  # the poll ended with the sweep, not at BUDGET - 45 s
-    assert "[2/2] balance__uniform__s1: finished in" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "1 done already, 1 to run" in proc.stdout, proc.stdout[-2000:]
+    assert "[1/1] balance__uniform__s1: finished in" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
     with tarfile.open(tmp_path / "out" / "tiny.tgz") as archive:
         names = set(archive.getnames())
     for run in ("balance__dreamer__s1", "balance__uniform__s1"):
