@@ -20,7 +20,8 @@
 #       # 334 s on an H100 on 2026-11-25, then `MPS=1 SHARE='state 1;state 16' ... share` (141 s) and
 #       # `COMPILE_MODES=steps STEPS_METHODS=dreamer ... compile` (31 s): results/benchmarks/2026-11-25-h100.json
 # Stages:
-#   check      the CUDA equivalence test: graphed updates against eager ones (tests/test_cuda_graph.py)
+#   check      the CUDA tests: graphed updates against eager ones (tests/test_cuda_graph.py), and no host sync in an
+#              update under torch.cuda.set_sync_debug_mode("error") (tests/test_update.py::test_update_has_no_host_sync)
 #   graphs     --cuda-graph on/off, paired, every method, fp32: paper size (pixels, 50x50) and state mode (16x50)
 #   precision  the same with --precision bf16, and fp32 with TF32 matrix products (cuBLAS override)
 #   profile    one paper-size Dreamer update's operators, eager and graphed (kernel time against wall time)
@@ -97,7 +98,8 @@ for stage in "$@"; do
   echo "=== $stage ($(date -u +%T))"
   case "$stage" in
     check)
-      timeout "$(cap 180)" python3 -m pytest -q -rA --tb=short -p no:cacheprovider tests/test_cuda_graph.py 2>&1 \
+      timeout "$(cap 180)" python3 -m pytest -q -rA --tb=short -p no:cacheprovider tests/test_cuda_graph.py \
+        "tests/test_update.py::test_update_has_no_host_sync" 2>&1 \
         | tee "$OUT/check.txt" | tail -15 ;;
     graphs)
       timeout "$(cap 170)" $BENCH --ab-flag cuda-graph --sizes paper --updates 20 \

@@ -67,11 +67,14 @@ def test_the_two_scripts_share_the_wrapper_word_for_word():
     assert inspect.getsource(rd.ActionRepeat) == inspect.getsource(rm.ActionRepeat)
 
 
-def _episode(S, env_id, repeat, limit, seed=3, expert=False):
-    """Length and return of one episode of env_id (state observations) with seeded random actions or the expert."""
+def _episode(S, env_id, repeat, limit, seed=3, expert=False, wrapped=True):
+    """Length and return of one episode of env_id (state observations) with seeded random actions or the expert.
+    wrapped False: the same episode without ActionRepeat, each action sent `repeat` times to the env's own step()
+    and the episode ended at `limit` env steps or by the env: the reference the wrapper must reproduce."""
     args = S.resolve_defaults(S.Args(env_id=env_id, obs_type="state", action_repeat=repeat, time_limit=limit))
     env = S.make_env(args, env_id, seed)
     assert isinstance(env, S.ActionRepeat)
+    env = env if wrapped else env.unwrapped
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     if expert:
@@ -80,13 +83,17 @@ def _episode(S, env_id, repeat, limit, seed=3, expert=False):
         act = lambda: scripted_action(env.unwrapped)  # noqa: E731
     else:
         act = lambda: rng.uniform(-1, 1, env.action_space.shape).astype(np.float32)  # noqa: E731
-    steps, total = 0, 0.0
-    while True:
-        _, reward, terminated, truncated, _ = env.step(act())
-        steps, total = steps + 1, total + reward
-        if terminated or truncated:
-            env.close()
-            return steps, round(total, 4)
+    steps, env_steps, total, done = 0, 0, 0.0, False
+    while not done:
+        action, steps = act(), steps + 1
+        for _ in range(1 if wrapped else repeat):
+            _, reward, terminated, truncated, _ = env.step(action)
+            env_steps, total = env_steps + 1, total + reward
+            done = terminated or truncated or (not wrapped and env_steps >= limit)
+            if done:
+                break
+    env.close()
+    return steps, round(total, 4)
 
 
 # Measured with each family's own repeat loop, before the one wrapper (commit f6e53a2): the same lengths
@@ -106,7 +113,9 @@ FACTS = [(rd, "dmc/cartpole-balance", 2, 1000, False, (500, 349.515)),
 def test_each_familys_episodes_for_a_fixed_seed(script, env_id, repeat, limit, expert, expected):
     steps, total = _episode(script, env_id, repeat, limit, expert=expert)
     assert steps == expected[0] == -(-limit // repeat)
-    assert total == pytest.approx(expected[1], abs=1e-3)
+    # the wrapper's episode is the env's own, each action repeated by hand: the same length and return
+    assert (steps, total) == _episode(script, env_id, repeat, limit, expert=expert, wrapped=False)
+    assert total == pytest.approx(expected[1], abs=1e-3)  # and that of each family's loop before the wrapper
 
 
 def test_a_cpu_users_first_pixel_update_gives_the_cost_of_the_run():

@@ -43,6 +43,7 @@ def test_reward_mask_of_borrowed_rows_same_task_or_all(monkeypatch):
     base = rd.Args(obs_type="state", method="uniform", address_prob=1.0, **{**SMALL, "batch_size": 8})
     seen = _spy_update(monkeypatch, base, current, multitask)
     assert seen["reward_mask"].tolist() == [1.0] * 8  # the paper: a same-task chunk keeps its reward loss
+    assert torch.all(seen["batch"]["obs"][4:] == 1)  # ... and rows 4: are borrowed ones (not an unmixed batch)
     seen = _spy_update(monkeypatch, dataclasses.replace(base, reward_mask_borrowed="all"), current, multitask)
     assert seen["reward_mask"].tolist() == [1.0] * 4 + [0.0] * 4  # the authors' code: every borrowed row masked
     assert torch.all(seen["batch"]["obs"][4:] == 1)  # ... and those rows are the borrowed ones

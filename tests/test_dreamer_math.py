@@ -44,9 +44,17 @@ def test_kl_with_free_nats():
     assert loss.item() == pytest.approx(expected, abs=1e-5) and value.item() == pytest.approx(expected, abs=1e-5)
     loss, value = rd.kl_with_free_nats(post, prior, free_nats=3.0)
     assert loss.item() == pytest.approx(3.0) and value.item() == pytest.approx(expected, abs=1e-5)
-    # below the free nats, no gradient reaches the model
+    # below the free nats, no gradient reaches the model; at 0 free nats it does. The means differ (0.5 against 0),
+    # so that dKL/dμ_q = (μ_q − μ_p) / σ_p² = 0.5 per dim, averaged over the one (B, T) entry: a leaking clip would
+    # show here. KL(N(0.5, 2) || N(0, 1)) per dim = 1.5 − ln 2 + 0.125 ≈ 0.932, both dims 1.864 < 3
+    post, prior = _state([[0.5, 0.5]], [[2.0, 2.0]]), _state([[0.0, 0.0]], [[1.0, 1.0]])
+    loss, value = rd.kl_with_free_nats(post, prior, free_nats=3.0)
+    assert value.item() == pytest.approx(3.25 - 2.0 * math.log(2.0), abs=1e-5) and loss.item() == pytest.approx(3.0)
     loss.backward()
-    assert post["mean"].grad is None or torch.all(post["mean"].grad == 0)
+    assert torch.equal(post["mean"].grad, torch.zeros(1, 2))
+    post["mean"].grad = None
+    rd.kl_with_free_nats(post, prior, free_nats=0.0)[0].backward()
+    assert torch.allclose(post["mean"].grad, torch.full((1, 2), 0.5))
     # KL averages over (B, T) before the clip (Dreamer v1): one KL of 0 and one of 2*0.5 -> mean 0.5
     post, prior = _state([[0.0, 0.0], [1.0, 1.0]], [[1.0, 1.0]] * 2), _state([[0.0, 0.0]] * 2, [[1.0, 1.0]] * 2)
     assert rd.kl_with_free_nats(post, prior, 0.0)[0].item() == pytest.approx(0.5)

@@ -47,6 +47,30 @@ def test_reinforce_sign_and_baseline():
     assert loss.item() == pytest.approx(np.log(3.0))
 
 
+def test_reinforce_standardized_advantages_the_default():
+    """--address-standardize (on by default, as the authors' code): A → (A − mean) / std over the batch, so the
+    picks with A above the batch's mean gain probability and those below lose it, whatever A's sign."""
+    assert rd.Args().address_standardize
+    logits = torch.zeros(3, 3, requires_grad=True)
+    index = torch.tensor([0, 1, 2])
+    advantage = torch.tensor([1.0, 2.0, 3.0])  # all positive; standardised: (−1, 0, 1) (mean 2, sample std 1)
+    loss = rd.reinforce_loss(logits, index, advantage, standardize=True)
+    assert loss.item() == pytest.approx(0.0, abs=1e-6)  # −mean(Â log ⅓) with Σ Â = 0
+    loss.backward()
+    # d loss / d logit of row i's pick = −Â_i (1 − ⅓) / 3: row 0 +2/9, row 1 0, row 2 −2/9
+    picked = logits.grad[torch.arange(3), index]
+    assert torch.allclose(picked, torch.tensor([2 / 9, 0.0, -2 / 9]), atol=1e-6)
+    stepped = (logits - logits.grad).softmax(-1)
+    assert stepped[0, 0] < 1 / 3 and stepped[2, 2] > 1 / 3  # row 0's A = 1 > 0, yet below the mean: it loses
+    # the raw advantages would have raised all three picks
+    logits.grad = None
+    rd.reinforce_loss(logits, index, advantage, standardize=False).backward()
+    assert torch.all(logits.grad[torch.arange(3), index] < 0)
+    # one row: nothing to standardise over (its std is undefined): the raw advantage is used
+    single = rd.reinforce_loss(torch.zeros(1, 3), torch.tensor([0]), torch.tensor([2.0]), standardize=True)
+    assert single.item() == pytest.approx(2.0 * np.log(3.0))
+
+
 def test_rbrama_subtracts_the_predicted_reward_of_x(monkeypatch):
     args = rd.Args(obs_type="state", method="rbrama", address_standardize=False, **SMALL)
     agent = rd.Agent((3,), 2, args)
@@ -230,6 +254,37 @@ def test_reward_mask_zeroes_masked_chunks():
     # the masked mean equals the plain mean over the kept chunks
     loglik = rd.gaussian_loglik(torch.zeros(4, 5), batch["reward"], 0)
     assert rd.masked_mean(loglik, mask).item() == pytest.approx(loglik[:2].mean().item())
+
+
+def test_model_mask_drops_chunks_from_every_term():
+    """model_mask (B,) takes chunks out of the whole world-model loss (observations, rewards, KL), not only the
+    reward term: what --no-wm-on-addressed's row rule relies on."""
+    args = rd.Args(obs_type="state", **SMALL)
+    wm = rd.Agent((3,), 2, args).wm
+    rng = np.random.default_rng(0)
+    batch = rd.to_torch(synthetic_replay((3,), 2, 2, 20, rng).sample(4, 5, rng), "cpu")
+    mask = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    keys = ("losses/obs_loglik", "losses/reward_loglik", "losses/kl")
+
+    def metrics(b, model_mask=mask):
+        torch.manual_seed(0)  # the posterior samples: the same noise for every call
+        return rd.world_model_loss(wm, b, 0.0, 1.0, model_mask=model_mask, obs_std=0.1)[2]
+
+    full = metrics(batch)
+    # the masked chunks' observations and rewards changed: no term moves with the mask, every term without it
+    changed = {k: v.clone() for k, v in batch.items()}
+    changed["obs"][2:] += 100.0
+    changed["reward"][2:] += 100.0
+    masked, unmasked = metrics(changed), (metrics(batch, None), metrics(changed, None))
+    for key in keys:
+        assert masked[key].item() == pytest.approx(full[key].item(), rel=1e-6), key
+        assert abs(unmasked[1][key].item() - unmasked[0][key].item()) > 1e-3, key
+    # a kept chunk's change moves every term
+    changed["obs"][0] += 100.0
+    changed["reward"][0] += 100.0
+    other = metrics(changed)
+    for key in keys:
+        assert abs(other[key].item() - full[key].item()) > 1e-3, key
 
 
 def test_batch_merge_keeps_beta_n_current_chunks():

@@ -374,7 +374,11 @@ def test_unfinished_runs_are_marked_and_non_finite_ones_left_out(tmp_path):
     text = (exp / "report.md").read_text()
     assert "| Dreamer | 3.5 ± 1.5 (2; 1 unfinished) |" in text  # (1 + 3) / 2 = 2 and 5: mean 3.5, s.e. 1.5
     assert "| walk__dreamer__s2 | walk | 1 | 100 (unfinished: stopped at 100 of 200) | 5.0 |" in text
+    assert "| walk__dreamer__s1 | walk | 2 | 200 | 2.0 |" in text and "s3" not in text
     # finished is read from the last step of any key: a per-round key ends before the last episode's step
     out = run_script("report.py", str(exp), "--reps", "100", "--key", "losses/kl")
     assert "walk__dreamer__s1/metrics.jsonl: stopped" not in out.stderr and "walk__dreamer__s2" in out.stderr
-    assert "| walk__dreamer__s1 | walk | 2 | 200 | 2.0 |" in text and "s3" not in text
+    text = (exp / "report.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| walk__dreamer__s1 |")]
+    assert rows and all("unfinished" not in row for row in rows)
+    assert any("unfinished" in line for line in text.splitlines() if line.startswith("| walk__dreamer__s2 |"))

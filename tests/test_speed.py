@@ -50,6 +50,17 @@ def test_bf16_losses_stay_close_to_fp32():
     bf16 = copy.deepcopy(fp32)
     rd.set_speed_options(bf16, "bf16", channels_last=True)
     assert bf16.wm.decoder.bf16 and bf16.value.bf16 and not fp32.value.bf16
+    # bf16 is in effect, not only flagged: the hidden layers compute in bfloat16, the output layer in fp32
+    dtypes = {}
+
+    def record(name):
+        def hook(module, inputs, output):  # returns None: the output is left as it is
+            dtypes.setdefault(name, output.dtype)
+        return hook
+
+    bf16.value.hidden[0].register_forward_hook(record("hidden"))
+    bf16.value.out.register_forward_hook(record("out"))
+    bf16.wm.encoder.net[0].register_forward_hook(record("conv"))
     batch = _pixel_batch()
     with torch.no_grad():
         (_, m32), (_, m16) = _wm_loss(fp32, batch), _wm_loss(bf16, batch)
@@ -59,6 +70,8 @@ def test_bf16_losses_stay_close_to_fp32():
     r32, _, v32 = rd.imagined_returns(fp32.wm, fp32.value, feats, 0.99, 0.95)
     r16, _, v16 = rd.imagined_returns(bf16.wm, bf16.value, feats, 0.99, 0.95)
     assert v16.dtype == torch.float32  # output layers stay fp32
+    assert dtypes == {"hidden": torch.bfloat16, "out": torch.float32, "conv": torch.bfloat16}
+    assert not torch.equal(v16, v32)  # bf16's rounding shows
     assert torch.allclose(r16, r32, rtol=0.02, atol=0.02)
 
 
@@ -142,12 +155,14 @@ def test_dreamer_v1_order_imagines_with_the_model_before_its_step():
 
 @pytest.mark.parametrize("prefetch", [False, True])
 def test_chunk_sampler_same_batches_with_and_without_prefetch(prefetch):
+    """With or without the background thread, the sampler gives the batches its random stream draws: those of
+    replay.sample with the same generator, in order (prefetch draws batch k+1 while k trains, never out of turn)."""
     rng = np.random.default_rng(0)
     replay = synthetic_replay((3,), 2, 3, 20, rng)
-    reference = rd.ChunkSampler(replay, 4, 5, np.random.default_rng(7), "cpu", prefetch=False)
+    reference_rng = np.random.default_rng(7)
+    expected = [rd.to_torch(replay.sample(4, 5, reference_rng), "cpu") for _ in range(3)]
     sampler = rd.ChunkSampler(replay, 4, 5, np.random.default_rng(7), "cpu", prefetch=prefetch)
     got = [x for x, _ in sampler.batches(3)]
-    expected = [x for x, _ in reference.batches(3)]
     sampler.close()
     assert len(got) == 3
     for x, y in zip(got, expected):
@@ -265,8 +280,12 @@ def test_the_compiled_rssm_variant_gives_the_scripts_updates(monkeypatch, mode, 
     """torch.compile fuses kernels and changes nothing else: with the same seeds, three updates of the compiled copy
     give the script's losses and parameters to fp32 rounding (its random draws are torch's own), every method's
     RSSM use included (the filter, imagination under Freeze, VRAMa's imagination from the picks)."""
+    from torch._dynamo.utils import counters
+
     compiled = compiled_variant(monkeypatch, mode)
     assert compiled.RSSM is not rd.RSSM and compiled.RSSM.img_step is not rd.RSSM.img_step  # a copy: rd untouched
+    torch._dynamo.reset()
+    counters.clear()  # dynamo counts the graphs it captures: none without a compile, none on a fallback to eager
     small = dict(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=0.0,
                  obs_std=1.0, batch_size=6, seq_len=5, address_units=8, address_batch=7, method=method)
     results = {}
@@ -287,6 +306,9 @@ def test_the_compiled_rssm_variant_gives_the_scripts_updates(monkeypatch, mode, 
             losses.append({k: float(v.detach()) for k, v in out["metrics"].items()
                            if k.startswith(("losses/", "addressing/l"))})
         results[module] = losses, agent.state_dict()
+        if module is rd:  # the script's own update compiles nothing
+            assert counters["stats"]["unique_graphs"] == 0
+    assert counters["stats"]["unique_graphs"] > 0  # the copy's updates ran compiled code
     (eager_losses, eager_params), (compiled_losses, compiled_params) = results[rd], results[compiled]
     for eager, fused in zip(eager_losses, compiled_losses):
         assert eager.keys() == fused.keys() and all(fused[k] == pytest.approx(eager[k], rel=1e-4, abs=1e-5)
