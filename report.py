@@ -664,9 +664,15 @@ def main():
     for folder in args.folders:
         if not os.path.isdir(folder):
             sys.exit(f"error: {folder}: no such folder")
-        # results/ itself holds experiments (folders of run folders) rather than run folders
-        experiments = [folder] if glob.glob(os.path.join(folder, "*", "args.json")) else \
-            sorted({os.path.dirname(os.path.dirname(p)) for p in glob.glob(os.path.join(folder, "*", "*", "args.json"))})
+        # results/ itself holds experiments (folders of run folders) rather than run folders; a run folder kept there
+        # beside them (results/gpu_pixel_cartpole) is left out, with a line saying so
+        runs = glob.glob(os.path.join(folder, "*", "args.json"))
+        experiments = sorted({os.path.dirname(os.path.dirname(p))
+                              for p in glob.glob(os.path.join(folder, "*", "*", "args.json"))})
+        if runs and experiments:
+            print(f"{folder}: left out, run folders rather than experiments (report them with --runs): "
+                  + " ".join(sorted(os.path.dirname(p) for p in runs)), file=sys.stderr)
+        experiments = experiments or ([folder] if runs else [])
         if not experiments:
             sys.exit(f"error: {folder}: holds no run folders (<run>/args.json) and no experiments")
         if args.against and (len(experiments) > 1 or len(args.folders) > 1):  # names one experiment's methods

@@ -382,3 +382,14 @@ def test_unfinished_runs_are_marked_and_non_finite_ones_left_out(tmp_path):
     rows = [line for line in text.splitlines() if line.startswith("| walk__dreamer__s1 |")]
     assert rows and all("unfinished" not in row for row in rows)
     assert any("unfinished" in line for line in text.splitlines() if line.startswith("| walk__dreamer__s2 |"))
+
+
+def test_results_root_with_a_run_folder_beside_the_experiments(tmp_path):
+    """`report.py results`: every experiment's report, though results/ also keeps a run folder of its own (as
+    results/gpu_pixel_cartpole is), which is left out with a line, not taken for the one experiment."""
+    root = tmp_path / "results"
+    write_run(root / "exp", "walk__dreamer__s1", [1.0, 3.0])
+    write_run(root, "single_run", [2.0])
+    out = run_script("report.py", str(root), "--reps", "50")
+    assert f"left out, run folders rather than experiments (report them with --runs): {root / 'single_run'}" in out.stderr
+    assert (root / "exp" / "report.md").exists() and not (root / "report.md").exists()
