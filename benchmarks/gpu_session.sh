@@ -41,12 +41,9 @@
 #              left it (args.json, metrics.jsonl and the priors' kept episodes) and every run's log tail. Checked on
 #              a CPU with a tiny grid (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec); pixels-start and -poll are
 #              the same code on sweeps/pixels_dreamer.toml
-# Issue 41 (walker tables), planned, not yet run. Stand's M and the CPU pilots are committed; walk's M (prior_walk,
-# 300k) is being made on a CPU (resumable from runs/ on that machine). If it is not committed when a session of 30
-# device-minutes is lent, make it there (~30 min alone: it does not fit a session of 15):
-#   run(command="BUDGET=585 MPS=1 SPEC=sweeps/walker_tables.toml ONLY='prior_walk*' WORKERS=1 \
-#       bash benchmarks/gpu_session.sh sweep-start sweep-poll", carry=[".gpu"])   # then sweep-poll, sweep-pack
-# then the tables in parts of MAX_RUNS runs side by side under MPS, one part per session (sweeps/walker_tables.toml).
+# Issue 41 (walker tables), planned, not yet run. Both Ms and the CPU pilots are committed (walk's M made on a CPU,
+# 2026-11-26); the tables go in parts of MAX_RUNS runs side by side under MPS, one part per session
+# (sweeps/walker_tables.toml has the two calls).
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
 mkdir -p "$OUT"
