@@ -228,9 +228,10 @@ def select(runs: list, patterns: list) -> list:
 
 
 def first_runs(runs: list, todo: list, count: int) -> list:
-    """--max-runs: the first `count` runs of `todo`, lowest seed first (then in spec order), so that a grid cut short
-    holds whole seeds; and the priors among `todo` that they need (beyond the count: without them they cannot run)."""
-    chosen = sorted(todo, key=lambda r: (int(last_value(r.flags, "--seed")), runs.index(r)))[:count]
+    """--max-runs: the first `count` runs of `todo`, lowest seed first (then in spec order, todo's own: the sort is
+    stable), so that a grid cut short holds whole seeds; and the priors among `todo` that they need (beyond the count:
+    without them they cannot run)."""
+    chosen = sorted(todo, key=lambda r: int(last_value(r.flags, "--seed")))[:count]
     return with_priors(runs, {r.name for r in chosen}, lambda prior: prior in todo)
 
 

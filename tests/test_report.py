@@ -391,5 +391,6 @@ def test_results_root_with_a_run_folder_beside_the_experiments(tmp_path):
     write_run(root / "exp", "walk__dreamer__s1", [1.0, 3.0])
     write_run(root, "single_run", [2.0])
     out = run_script("report.py", str(root), "--reps", "50")
-    assert f"left out, run folders rather than experiments (report them with --runs): {root / 'single_run'}" in out.stderr
+    left_out = f"left out, run folders rather than experiments (report them with --runs): {root / 'single_run'}"
+    assert left_out in out.stderr
     assert (root / "exp" / "report.md").exists() and not (root / "report.md").exists()
