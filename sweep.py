@@ -401,6 +401,9 @@ def main():
     parser.add_argument("--max-runs", type=int, default=None, metavar="N",
                         help="run at most N of the runs still to do (lowest seed first), and the priors they need: "
                              "a grid in parts, each finished within a time-limited allocation (a device session)")
+    parser.add_argument("--collect", action="store_true",
+                        help="only copy the done runs' results again from their run folders to a results/ that lost "
+                             "them (a device's working tree resynced between calls), and run nothing")
     args = parser.parse_args()
     if args.max_runs is not None and args.max_runs < 1:
         parser.error(f"--max-runs must be >= 1 (got {args.max_runs})")
@@ -421,6 +424,8 @@ def main():
         if run not in pending and not os.path.exists(os.path.join(run.results, "args.json")) and not args.dry_run:
             save_results(run)
             print(f"{run.name}: results copied again to {run.results}")
+    if args.collect:
+        return
     todo = pending if args.max_runs is None else first_runs(runs, pending, args.max_runs)
     print(f"sweep {experiment}: {len(runs)} runs, {len(runs) - len(pending)} done already, {len(pending)} to run"
           + (f", {len(todo)} of them now (--max-runs {args.max_runs})" if len(todo) < len(pending) else "")

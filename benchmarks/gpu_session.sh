@@ -197,14 +197,18 @@ for stage in "$@"; do
       # them through MPS (16 state-mode runs side by side: 9x one run's env steps/s on the H100, 2026-11-25)
       [ "${MPS:-0}" = 1 ] && mps_start
       start_sweep "${SPEC:?sweep-start needs SPEC=sweeps/<name>.toml}" "${ONLY:-}" "${WORKERS:-4}" "${FLAGS:-}" ;;
-    pixels-poll|sweep-poll)  # until the sweep has ended or 45 s of the call are left: each unfinished run's last line, every minute
-      exp=$(sed -n 's/^experiment = "\(.*\)"/\1/p' "$ST/spec.toml")
+    pixels-poll|sweep-poll)  # until the sweep has ended (checked every 10 s) or 45 s of the call are left: each
+      # unfinished run's last line, every minute
+      exp=$(sed -n 's/^experiment = "\(.*\)"/\1/p' "$ST/spec.toml"); ticks=0
       while [ "$(left)" -gt 45 ] && kill -0 "$(cat "$ST/pid")" 2>/dev/null; do
-        sleep "$(cap 60)"; echo "--- $(date -u +%T)"
+        sleep "$(cap 10)"; ticks=$((ticks + 1)); [ $((ticks % 6)) = 0 ] || continue; echo "--- $(date -u +%T)"
         for f in runs/"$exp"/*/log.txt; do [ -e "${f%log.txt}DONE" ] || echo "$f: $(tail -n 1 "$f")"; done
       done; cat "$ST/sweep.log" ;;
-    sweep-pack)  # results/<experiment>/ as sweep.py left it, with the sweep's log and each run's log tail beside it
+    sweep-pack)  # results/<experiment>/ with every done run's results, the sweep's log and each run's log tail.
+      # The device copies the working tree afresh on every call, which deletes the untracked results/ an earlier call
+      # wrote (runs/, ignored, stays): sweep.py --collect copies them again from runs/ (2026-11-26 lost four runs so)
       exp=$(sed -n 's/^experiment = "\(.*\)"/\1/p' "$ST/spec.toml"); mkdir -p "$ST/logs/$exp" "results/$exp"
+      python3 sweep.py "$ST/spec.toml" --collect 2>&1 | tail -n 20
       cp "$ST/sweep.log" "$ST/logs/$exp/sweep.txt"
       for run in runs/"$exp"/*/; do tail -n 40 "$run/log.txt" > "$ST/logs/$exp/$(basename "$run").txt"; done
       tar czf "$OUT/$exp.tgz" "results/$exp" -C "$ST" logs && tar tzf "$OUT/$exp.tgz" | tail -n 12 ;;

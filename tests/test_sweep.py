@@ -304,7 +304,8 @@ def test_local_sweep_resumes_a_killed_run_then_skips_done_runs(tmp_path):
 def test_gpu_session_sweep_stages_run_a_spec(tmp_path):
     """benchmarks/gpu_session.sh's sweep-start, sweep-poll and sweep-pack (issue 41's GPU calls) on a CPU: the tiny
     grid runs detached in two parts (MAX_RUNS), the poll returns when it has ended (not at the call's deadline), and
-    the archive holds results/<experiment>/ as sweep.py wrote it, with the sweep's log and each run's log tail."""
+    the archive holds every done run's results, the sweep's log and each run's log tail, even when results/ was
+    deleted between the calls (the device copies the working tree afresh on every call)."""
     import tarfile
 
     for name in ("sweep.py", "rama_dreamer.py", "kitchen_env.py", "report.py", "benchmarks/gpu_session.sh"):
@@ -322,10 +323,14 @@ def test_gpu_session_sweep_stages_run_a_spec(tmp_path):
     assert "2 to run, 1 of them now (--max-runs 1)" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
     assert "[1/1] balance__dreamer__s1: finished in" in proc.stdout and "uniform" not in proc.stdout.split("now")[1]
     start = time.time()
-    proc = subprocess.run(stages, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=420)
+    proc = subprocess.run(stages[:-1], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=420)
     assert time.time() - start < 300, proc.stdout[-2000:]  # the poll ended with the sweep, not at BUDGET - 45 s
     assert "1 done already, 1 to run" in proc.stdout, proc.stdout[-2000:]
     assert "[1/1] balance__uniform__s1: finished in" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
+    shutil.rmtree(tmp_path / "results")  # the next call's fresh copy of the working tree has no untracked results/
+    proc = subprocess.run(stages[:2] + ["sweep-pack"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert "balance__uniform__s1: results copied again" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
     with tarfile.open(tmp_path / "out" / "tiny.tgz") as archive:
         names = set(archive.getnames())
     for run in ("balance__dreamer__s1", "balance__uniform__s1"):
