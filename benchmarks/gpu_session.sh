@@ -4,13 +4,12 @@
 # docs/benchmarks.md, section "`--cuda-graph`: the whole update as CUDA graphs"):
 #   run(command="BUDGET=555 bash benchmarks/gpu_session.sh check graphs precision profile", carry=[".gpu"])
 #       # 256 s on an H100 on 2026-11-24 (its tables: results/benchmarks/2026-11-24-h100.json)
-# The next session lent a device, planned (2026-11-26), for sessions of 15 device-minutes (the workplace's limit since
-# 2026-11-25): issue 39's equivalence test on the current code first (it last ran at 6e2e058, before the operator
-# cuts; with it passed, 39's done-when is met), then the first part of issue 41's walker grid (sweeps/walker_tables.toml
-# has the two calls every session makes; add `check` before `sweep-start` in the first). Issue 40's last walker-stand
-# seed does not fit such a session: one 100k-step pixel run alone needs ~14 min (10k graphed updates x 53 ms, 100k env
-# steps collected at ~430/s, 5 evaluations of 5 episodes), and runs do not outlive their session. In a session of 30
-# device-minutes, it and cartpole-balance's first seed, side by side under MPS (two took 23.5 min without it):
+# 2026-11-26 (H200, one 15-minute session): `check` passed on the current code (issue 39's last step), and the walker
+# grid's first part ran (4 runs side by side under MPS, 7.7 min; one more alone; docs/benchmarks.md): issue 41's next
+# sessions make the two calls in sweeps/walker_tables.toml, the second at once when the first returns. Issue 40's last
+# walker-stand seed does not fit such a session: one 100k-step pixel run alone needs ~14 min (10k graphed updates x
+# 53 ms, 100k env steps collected at ~430/s, 5 evaluations of 5 episodes), and runs do not outlive their session. In a
+# session of 30 device-minutes, it and cartpole-balance's first seed, side by side under MPS (two took 23.5 min without it):
 #   run(command="BUDGET=585 MPS=1 PIXEL_WORKERS=2 PIXEL_ONLY='walker_stand__dreamer__s3 cartpole_balance__dreamer__s1' \
 #       bash benchmarks/gpu_session.sh check pixels-start pixels-poll", carry=[".gpu"])
 #   run(command="BUDGET=585 bash benchmarks/gpu_session.sh pixels-poll", carry=[".gpu"])
@@ -41,9 +40,9 @@
 #              left it (args.json, metrics.jsonl and the priors' kept episodes) and every run's log tail. Checked on
 #              a CPU with a tiny grid (tests/test_sweep.py::test_gpu_session_sweep_stages_run_a_spec); pixels-start and -poll are
 #              the same code on sweeps/pixels_dreamer.toml
-# Issue 41 (walker tables), planned, not yet run. Both Ms and the CPU pilots are committed (walk's M made on a CPU,
-# 2026-11-26); the tables go in parts of MAX_RUNS runs side by side under MPS, one part per session
-# (sweeps/walker_tables.toml has the two calls).
+# Issue 41 (walker tables): in parts of MAX_RUNS runs side by side under MPS, one part per session (the two calls are in
+# sweeps/walker_tables.toml); the first part ran on 2026-11-26. The device copies the working tree afresh on every
+# call, deleting the untracked results/ an earlier call wrote (runs/, ignored, stays): sweep-pack copies them again.
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
 mkdir -p "$OUT"
