@@ -394,3 +394,15 @@ def test_results_root_with_a_run_folder_beside_the_experiments(tmp_path):
     left_out = f"left out, run folders rather than experiments (report them with --runs): {root / 'single_run'}"
     assert left_out in out.stderr
     assert (root / "exp" / "report.md").exists() and not (root / "report.md").exists()
+
+
+def test_a_linked_run_folder_counts_in_its_own_cell_and_a_dangling_link_is_not_read(tmp_path):
+    """One run in two tables (the walker tables' Dreamer row): a link named for another cell is read as the run it
+    names, in that cell; a link to a run not made yet is skipped."""
+    exp = tmp_path / "exp"
+    write_run(exp, "walk__dreamer__s1", [1.0, 3.0])
+    os.symlink("walk__dreamer__s1", exp / "stand_walk__dreamer__s1")
+    os.symlink("walk__dreamer__s2", exp / "stand_walk__dreamer__s2")  # not made yet
+    runs = report.load_experiment(str(exp), "charts/episodic_return")
+    assert sorted((r["task"], r["seed"], list(r["values"])) for r in runs) == [
+        ("stand_walk", 1, [1.0, 3.0]), ("walk", 1, [1.0, 3.0])]
