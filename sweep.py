@@ -5,6 +5,7 @@
     OMP_NUM_THREADS=1 python sweep.py sweeps/cartpole_tables.toml        # a given OMP_NUM_THREADS is kept: cores shared
     python sweep.py sweeps/cartpole_tables.toml --ray-address auto       # each run a Ray task on a running cluster
     python sweep.py sweeps/walker_tables.toml --workers 4 --max-runs 4   # a grid in parts: 4 runs still to do
+    python sweep.py sweeps/walker_tables.toml --collect                  # copy done runs' results again, run nothing
 
 The spec (see sweeps/*.toml) names the script, the flags common to every run, and cells. A cell has its own flags
 (and may name its own `script`, e.g. rama_metaworld.py beside rama_dreamer.py cells),
