@@ -131,9 +131,17 @@ def synthetic_replay(replay, obs_shape, action_size: int, episodes: int, length:
 
 def time_collection(S, args, device: torch.device) -> None:
     """Env steps per second of collection with the agent's policy acting (rendering + one encoder and RSSM step per
-    agent step), in one env and in --num-envs subprocesses."""
+    agent step), in one env and in --num-envs subprocesses, and per step of the envs what the policy took (its
+    actions come back to the host, so the device has finished) against the rest (physics, rendering, bookkeeping):
+    the share that graphing the policy's step could remove at most."""
     args = dataclasses.replace(args, time_limit=min(args.time_limit, 400), total_steps=10**9)
     policy, rng = None, np.random.default_rng(args.seed)
+
+    def timed_act(obs):
+        t0 = time.perf_counter()
+        action = policy.act(obs, args.expl_noise, rng)
+        acting.append(time.perf_counter() - t0)
+        return action
     for num_envs in sorted({1, args.num_envs}):
         envs = S.make_envs(args, args.env_id, args.seed, num_envs)
         if policy is None:
@@ -141,13 +149,13 @@ def time_collection(S, args, device: torch.device) -> None:
                                       args).to(device), device)
         for _ in range(2):  # the first round warms up (subprocess start, renderer, kernels); the second is timed
             policy.reset(num_envs)
-            t0 = time.perf_counter()
-            episodes, _ = S.run_episodes(envs, lambda o: policy.act(o, args.expl_noise, rng), list(range(num_envs)),
-                                         "bench")
+            acting, t0 = [], time.perf_counter()  # acting: seconds of each policy call (one per step of the envs)
+            episodes, _ = S.run_episodes(envs, timed_act, list(range(num_envs)), "bench")
             seconds = time.perf_counter() - t0
         steps = sum(len(ep["reward"]) - 1 for ep in episodes) * args.action_repeat
         print(f"{device.type:<6} collection {args.env_id} ({args.obs_type}), {num_envs} env(s): "
-              f"{steps / seconds:.0f} env steps/s", flush=True)
+              f"{steps / seconds:.0f} env steps/s | per step of the envs: policy {1e3 * np.mean(acting):.2f} ms, "
+              f"the rest {1e3 * (seconds - sum(acting)) / len(acting):.2f} ms", flush=True)
         envs.close()
 
 

@@ -27,6 +27,7 @@
 #   kernels    the script against commit d1ecdaf's (before 2026-11-25's operator cuts), both graphed, paired
 #   compile    benchmarks/compiled_rssm.py (torch.compile on the RSSM's steps, or its whole loops) against the script,
 #              both graphed, paired: state mode for dreamer, rrama and vrama, and paper size for dreamer
+#   collection the policy's step against the env's, per step of collection (pixels, and the state mode): ~30 s
 #   e2e-eager, e2e-graphs   a real walker-walk run from pixels (20k env steps): env steps/s end to end (EGL)
 #   share      real runs side by side on the one GPU (SHARE, default 1, 2 and 4 state-mode runs and 2 pixel runs;
 #              MPS=1 through MPS): env steps/s in all, GPU memory per run
@@ -151,6 +152,13 @@ for stage in "$@"; do
           --json "$OUT/share-paper-mps$mps.json" 2>&1 | tee "$OUT/share-paper-mps$mps.txt"
         [ "$mps" = 1 ] && mps_stop
       done ;;
+    collection)  # where a step of collection goes (bench_update.py's collection line): the policy's eager step on the
+      # GPU against the rest (physics, EGL rendering, bookkeeping), from pixels at paper size and in the walker tables'
+      # state mode: the most that graphing the policy's step could save (CPU figures: docs/benchmarks.md)
+      for obs in "--obs-type pixels" "--obs-type state --mlp-units 200"; do
+        timeout "$(cap 60)" python3 benchmarks/bench_update.py --device cuda --sizes small --methods dreamer \
+          --updates 1 $obs 2>&1 | grep collection | tee -a "$OUT/collection.txt"
+      done ;;
     e2e-eager|e2e-graphs)  # one per call: the eager run takes about 8 of a call's 10 minutes
       flag=$([ "$stage" = e2e-graphs ] && echo True || echo False)
       timeout "$(( $(left) - 10 ))" python3 rama_dreamer.py --env-id dmc/walker-walk --total-steps 20000 --eval-every 20000 \
@@ -212,7 +220,8 @@ for stage in "$@"; do
       for run in runs/"$exp"/*/; do tail -n 40 "$run/log.txt" > "$ST/logs/$exp/$(basename "$run").txt"; done
       tar czf "$OUT/$exp.tgz" "results/$exp" -C "$ST" logs && tar tzf "$OUT/$exp.tgz" | tail -n 12 ;;
     *) echo "unknown stage $stage (check, graphs, precision, profile, e2e-eager, e2e-graphs, pixels-start," \
-            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share, share-bench, kernels, compile)" ;;
+            "pixels-poll, pixels-pack, sweep-start, sweep-poll, sweep-pack, share, share-bench, kernels, compile," \
+            "collection)" ;;
   esac
 done
 # the device tool brings back at most 8 files: past 7, everything goes back as one archive

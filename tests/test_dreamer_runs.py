@@ -2,6 +2,7 @@
 import glob
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -188,12 +189,15 @@ def test_benchmark_command_prints_every_method():
     assert "machine: " in header and "precision fp32" in header
     assert [d for d in ("cpu", "cuda") if f"| {d} bf16: " in header] == devices
     assert columns.split()[:6] == ["device", "size", "n", "L", "method", "s/update"]
-    collection = [line.split() for line in lines if " collection " in line]
+    collection = [re.fullmatch(r"(\w+) +collection dmc/walker-walk \(state\), (\d) env\(s\): (\d+) env steps/s \| "
+                               r"per step of the envs: policy ([\d.]+) ms, the rest ([\d.]+) ms", line)
+                  for line in lines if " collection " in line]
     rows = [line.split() for line in lines if " collection " not in line]
     assert [(r[0], r[1], r[4]) for r in rows] == [(d, size, m) for d in devices for size in ("paper", "small")
                                                   for m in ("dreamer", "uniform", "rrama", "vrama", "rbrama")]
-    assert [(c[0], c[-5]) for c in collection] == [(d, n) for d in devices for n in ("1", "2")]  # 1 env, then 2
-    assert all(float(c[-3]) > 0 for c in collection)
+    assert all(collection), lines  # every collection line in the format above
+    assert [(c[1], c[2]) for c in collection] == [(d, n) for d in devices for n in ("1", "2")]  # 1 env, then 2
+    assert all(float(c[3]) > 0 and float(c[4]) > 0 and float(c[5]) > 0 for c in collection)
     assert all(float(r[5]) > 0 for r in rows)
 
 
