@@ -136,6 +136,7 @@ def time_collection(S, args, device: torch.device) -> None:
     the share that graphing the policy's step could remove at most."""
     args = dataclasses.replace(args, time_limit=min(args.time_limit, 400), total_steps=10**9)
     policy, rng = None, np.random.default_rng(args.seed)
+    acting = []  # seconds of each policy call in the round being timed (one call per step of the envs)
 
     def timed_act(obs):
         t0 = time.perf_counter()
@@ -149,7 +150,8 @@ def time_collection(S, args, device: torch.device) -> None:
                                       args).to(device), device)
         for _ in range(2):  # the first round warms up (subprocess start, renderer, kernels); the second is timed
             policy.reset(num_envs)
-            acting, t0 = [], time.perf_counter()  # acting: seconds of each policy call (one per step of the envs)
+            acting.clear()
+            t0 = time.perf_counter()
             episodes, _ = S.run_episodes(envs, timed_act, list(range(num_envs)), "bench")
             seconds = time.perf_counter() - t0
         steps = sum(len(ep["reward"]) - 1 for ep in episodes) * args.action_repeat
