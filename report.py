@@ -11,6 +11,8 @@
         --reference results/pixels_dreamer/reference.json  # against Dreamer v1's published curves
     python report.py results/families_state --levels results/families_state/references.json  # against a random
                                                            # policy's and the scripted expert's levels
+    python report.py results/walker_tables --tasks walk stand_walk  # only these tasks' columns (shell-style
+                                                           # patterns too): not the experiment's pilots and Ms
 
 An experiment folder holds one folder per run, named <cell>__<method>__s<seed> as sweep.py writes them, each with
 args.json and metrics.jsonl. A folder named otherwise is grouped by its args.json (env id, method, seed). A
@@ -39,10 +41,12 @@ each, or the logged step nearest each, within 10%) against the reference's mean 
 expert's): dotted lines on the curves, and a table of each method's last values against them.
 """
 import argparse
+import fnmatch
 import glob
 import json
 import os
 import re
+import shlex
 import sys
 import warnings
 
@@ -206,10 +210,16 @@ def fmt(x: float, decimals: int) -> str:
 
 
 def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str,
-                 beside: tuple = (), reference: dict = None, levels: dict = None, against: tuple = ()):
+                 beside: tuple = (), reference: dict = None, levels: dict = None, against: tuple = (),
+                 only_tasks: tuple = ()):
     runs = load_experiment(folder, key)
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
+    if only_tasks:  # --tasks: the tables' columns only (an experiment also keeps its pilots and its Ms' runs)
+        found = sorted({r["task"] for r in runs})
+        runs = [r for r in runs if any(fnmatch.fnmatchcase(r["task"], pattern) for pattern in only_tasks)]
+        if not runs:
+            sys.exit(f"error: --tasks {' '.join(only_tasks)}: no such task in {folder} (there: {', '.join(found)})")
     experiment = os.path.basename(os.path.normpath(folder))
     tasks = sorted({r["task"] for r in runs})
     for other in beside:  # --beside: another experiment's runs of the same tasks join the tables
@@ -618,6 +628,9 @@ def main():
     parser.add_argument("--beside", nargs="+", default=[], metavar="FOLDER",
                         help="other experiment folders whose runs of the same tasks join the tables (e.g. the same "
                              "grid under another --preset)")
+    parser.add_argument("--tasks", nargs="+", default=[], metavar="PATTERN",
+                        help="only these tasks (the <cell> of <cell>__<method>__s<seed>; shell-style patterns, e.g. "
+                             "'walk*'): the tables' columns without an experiment's pilots and priors")
     parser.add_argument("--against", nargs="+", default=[], metavar="METHOD",
                         help="methods (as the report names them in its folders: vrama, vrama@authors-code) to compare "
                              "every row with, beside Dreamer and uniform mixing")
@@ -637,6 +650,7 @@ def main():
         if getattr(args, name) != parser.get_default(name))
     options += f" --beside {' '.join(args.beside)}" if args.beside else ""  # one flag: a second --beside replaces
     options += f" --against {' '.join(args.against)}" if args.against else ""
+    options += f" --tasks {' '.join(shlex.quote(t) for t in args.tasks)}" if args.tasks else ""
     reference = None
     if args.reference:
         try:
@@ -682,7 +696,7 @@ def main():
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
             write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals,
                          options + (f" --out {out}" if args.out else ""), tuple(args.beside), reference, levels,
-                         tuple(args.against))
+                         tuple(args.against), tuple(args.tasks))
 
 
 if __name__ == "__main__":

@@ -406,3 +406,20 @@ def test_a_linked_run_folder_counts_in_its_own_cell_and_a_dangling_link_is_not_r
     runs = report.load_experiment(str(exp), "charts/episodic_return")
     assert sorted((r["task"], r["seed"], list(r["values"])) for r in runs) == [
         ("stand_walk", 1, [1.0, 3.0]), ("walk", 1, [1.0, 3.0])]
+
+
+def test_tasks_keep_only_the_named_columns_and_name_a_missing_one(results, tmp_path):
+    """--tasks: the tables' columns alone (an experiment folder also keeps its pilots' and its Ms' runs), by name or by
+    a shell-style pattern; the "Made by" line repeats it, quoted; a pattern matching no task is one line naming it."""
+    out = tmp_path / "only"
+    run_script("report.py", str(results), "--tasks", "walk", "dmc/*", "--reps", "50", "--out", str(out))
+    text = (out / "report.md").read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| method |"))
+    assert "walk: mean" in header and "dmc/hop: mean" in header
+    assert "run: mean" not in header and "seq/" not in header
+    dreamer = next(line for line in text.splitlines() if line.startswith("| Dreamer |"))
+    assert dreamer.startswith("| Dreamer | – | – | 4.0 ± 2.0 (4) |")  # dmc/hop has none; walk's seeds 1, 2, 3, 10
+    assert "run__dreamer__s1" not in text and "seq__rrama__s1" not in text  # nor in the Runs table
+    assert f"`python report.py {results} --reps 50 --tasks walk 'dmc/*' --out {out}`" in text
+    bad = run_script("report.py", str(results), "--tasks", "wlak", check=False)
+    assert bad.returncode != 0 and "--tasks wlak: no such task" in bad.stderr and "walk" in bad.stderr
