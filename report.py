@@ -689,8 +689,11 @@ def main():
         experiments = experiments or ([folder] if runs else [])
         if not experiments:
             sys.exit(f"error: {folder}: holds no run folders (<run>/args.json) and no experiments")
-        if args.against and (len(experiments) > 1 or len(args.folders) > 1):  # names one experiment's methods
-            sys.exit("error: --against: give one experiment folder (it names that experiment's methods)")
+        # --against names one experiment's methods and --tasks its tasks: refused before any report is written
+        one_experiment = [f"--{name}" for name in ("against", "tasks") if getattr(args, name)]
+        if one_experiment and (len(experiments) > 1 or len(args.folders) > 1):
+            sys.exit(f"error: {' and '.join(one_experiment)}: give one experiment folder (it names that experiment's "
+                     f"methods or tasks)")
         for experiment in experiments:
             out = args.out if args.out and len(experiments) == 1 else \
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment

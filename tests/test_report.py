@@ -423,3 +423,7 @@ def test_tasks_keep_only_the_named_columns_and_name_a_missing_one(results, tmp_p
     assert f"`python report.py {results} --reps 50 --tasks walk 'dmc/*' --out {out}`" in text
     bad = run_script("report.py", str(results), "--tasks", "wlak", check=False)
     assert bad.returncode != 0 and "--tasks wlak: no such task" in bad.stderr and "walk" in bad.stderr
+    other = write_run(tmp_path / "results" / "other", "walk__dreamer__s1", [1.0]).parent
+    two = run_script("report.py", str(results), str(other), "--tasks", "walk", check=False)
+    assert two.returncode != 0 and "--tasks: give one experiment folder" in two.stderr
+    assert not (results / "report.md").exists()  # refused before any report was written
