@@ -1235,8 +1235,10 @@ class Addressing:
                                     weight_decay=args.address_weight_decay / args.address_lr,
                                     capturable=args.cuda_graph)
         # f(x)'s network: f_φ itself, or a frozen copy of its initial weights. Under the stop-gradient a step of φ
-        # is meant to move f(M_j) only (Section 4.3), yet the shared weights move f(x) with it (README, deviations)
-        self.x_net = self.net if args.address_x_net == "shared" else copy.deepcopy(self.net).requires_grad_(False)
+        # is meant to move f(M_j) only (Section 4.3), yet the shared weights move f(x) with it (README, deviations).
+        # .to() packs the copy's GRU weights into the one buffer cuDNN wants (a deepcopy leaves them apart)
+        self.x_net = self.net if args.address_x_net == "shared" else \
+            copy.deepcopy(self.net).requires_grad_(False).to(device)
         self.method, self.device, self.logit_scale = args.method, device, args.address_logit_scale
         self.stop_grad_x = args.method in ("rrama", "rbrama") if args.address_stop_grad_x is None \
             else args.address_stop_grad_x

@@ -18,6 +18,7 @@ SMALL = dict(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_un
              address_refresh=2, address_prob=0.5)
 METHODS = {"dreamer": {}, "uniform": {}, "rrama": {}, "rbrama": {}, "vrama": {},
            "rrama_fresh": {"method": "rrama", "address_candidates_mode": "fresh"},
+           "rrama_frozenx": {"method": "rrama", "address_x_net": "frozen"},  # the walker tables' rrama_frozenx row
            "vrama_batch_rule": {"method": "vrama", "wm_on_addressed": False, "addressed_wm_rule": "batch",
                                 "address_candidates_mode": "fresh"}}
 
@@ -166,7 +167,8 @@ def test_a_failed_capture_leaves_the_run_eager(capsys):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("name", ["dreamer", "rrama", "vrama", "uniform", "rrama_fresh", "vrama_batch_rule"])
+@pytest.mark.parametrize("name", ["dreamer", "rrama", "vrama", "uniform", "rrama_fresh", "rrama_frozenx",
+                                  "vrama_batch_rule"])
 def test_cuda_graphs_match_eager_updates(name):
     args = rd.resolve_defaults(rd.Args(**{**SMALL, "method": name, **METHODS[name], "cuda_graph": True,
                                           "device": "cuda"}))
@@ -188,3 +190,15 @@ def test_a_failed_cuda_capture_leaves_the_run_eager(capsys):
     eager, graphed = run_updates(args, "cuda", None), run_updates(args, "cuda", Syncing)
     check_same(eager, graphed, rtol=1e-3, atol=1e-4)
     assert graphed[3].failed and capsys.readouterr().out.count("--cuda-graph: capture failed") == 1
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_frozen_x_net_keeps_its_gru_weights_in_one_cudnn_buffer():
+    """cuDNN runs a GRU from one buffer of its weights. A deepcopy leaves them apart, and then every call packs them
+    again (a warning per run, and copies in each graphed update): --address-x-net frozen's copy is packed once."""
+    args = rd.resolve_defaults(rd.Args(**{**SMALL, "method": "rrama", "address_x_net": "frozen", "device": "cuda"}))
+    addressing = rd.Addressing((3,), 2, args, "cuda")
+    grus = [m for m in addressing.x_net.modules() if isinstance(m, torch.nn.RNNBase)]
+    assert grus and addressing.x_net is not addressing.net
+    for gru in grus:
+        assert len({w.untyped_storage().data_ptr() for w in gru._flat_weights}) == 1
