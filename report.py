@@ -211,10 +211,22 @@ def fmt(x: float, decimals: int) -> str:
 
 def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str,
                  beside: tuple = (), reference: dict = None, levels: dict = None, against: tuple = (),
-                 only_tasks: tuple = ()):
+                 only_tasks: tuple = (), same_tasks: dict = None):
     runs = load_experiment(folder, key)
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
+    if same_tasks:  # --same-task: a preset's own cells (walk_authors) are columns of the task they ran (walk)
+        found = sorted({r["task"] for r in runs})
+        for cell in (a for a in same_tasks if a not in found):  # a grid's later cell may not have run yet
+            print(f"warning: --same-task {cell}={same_tasks[cell]}: no task {cell} in {folder} (yet? there: "
+                  f"{', '.join(found)})", file=sys.stderr)
+        runs = [dict(r, task=same_tasks.get(r["task"], r["task"])) for r in runs]
+        seen = {}
+        for r in runs:  # a merged run must be a row of its own (its method carries the preset): never two seeds in one
+            clash = seen.setdefault((r["task"], r["method"], r["seed"]), r["name"])
+            if clash != r["name"]:
+                sys.exit(f"error: --same-task: {clash} and {r['name']} would be the same run of {r['task']} "
+                         f"({r['method']}, seed {r['seed']}); merge only cells whose methods differ (another --preset)")
     if only_tasks:  # --tasks: the tables' columns only (an experiment also keeps its pilots and its Ms' runs)
         found = sorted({r["task"] for r in runs})
         runs = [r for r in runs if any(fnmatch.fnmatchcase(r["task"], pattern) for pattern in only_tasks)]
@@ -634,7 +646,14 @@ def main():
     parser.add_argument("--against", nargs="+", default=[], metavar="METHOD",
                         help="methods (as the report names them in its folders: vrama, vrama@authors-code) to compare "
                              "every row with, beside Dreamer and uniform mixing")
+    parser.add_argument("--same-task", nargs="+", default=[], metavar="CELL=TASK",
+                        help="count CELL's runs as TASK's (e.g. walk_authors=walk: a cell of --preset runs, whose "
+                             "rows stay apart by their method's preset, beside the same task's Dreamer and uniform)")
     args = parser.parse_args()
+    bad = [pair for pair in args.same_task if not re.fullmatch(r"[^=\s]+=[^=\s]+", pair)]
+    if bad:
+        parser.error(f"--same-task {bad[0]}: give CELL=TASK, e.g. walk_authors=walk")
+    same_tasks = dict(pair.split("=") for pair in args.same_task)
     if args.runs and args.against:
         parser.error("--against: for the tables of an experiment folder, not with --runs")
     if args.runs:
@@ -651,6 +670,7 @@ def main():
     options += f" --beside {' '.join(args.beside)}" if args.beside else ""  # one flag: a second --beside replaces
     options += f" --against {' '.join(args.against)}" if args.against else ""
     options += f" --tasks {' '.join(shlex.quote(t) for t in args.tasks)}" if args.tasks else ""
+    options += f" --same-task {' '.join(args.same_task)}" if args.same_task else ""
     reference = None
     if args.reference:
         try:
@@ -690,7 +710,8 @@ def main():
         if not experiments:
             sys.exit(f"error: {folder}: holds no run folders (<run>/args.json) and no experiments")
         # --against names one experiment's methods and --tasks its tasks: refused before any report is written
-        one_experiment = [f"--{name}" for name in ("against", "tasks") if getattr(args, name)]
+        one_experiment = [f"--{name.replace('_', '-')}" for name in ("against", "tasks", "same_task")
+                          if getattr(args, name)]
         if one_experiment and (len(experiments) > 1 or len(args.folders) > 1):
             sys.exit(f"error: {' and '.join(one_experiment)}: give one experiment folder (it names that experiment's "
                      f"methods or tasks)")
@@ -699,7 +720,7 @@ def main():
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
             write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals,
                          options + (f" --out {out}" if args.out else ""), tuple(args.beside), reference, levels,
-                         tuple(args.against), tuple(args.tasks))
+                         tuple(args.against), tuple(args.tasks), same_tasks)
 
 
 if __name__ == "__main__":

@@ -427,3 +427,35 @@ def test_tasks_keep_only_the_named_columns_and_name_a_missing_one(results, tmp_p
     two = run_script("report.py", str(results), str(other), "--tasks", "walk", check=False)
     assert two.returncode != 0 and "--tasks: give one experiment folder" in two.stderr
     assert not (results / "report.md").exists()  # refused before any report was written
+
+
+def test_same_task_puts_a_presets_cell_beside_the_task_it_ran(tmp_path):
+    """--same-task walk_authors=walk: a cell of --preset runs (one spec names its cells apart) joins walk's columns, its
+    rows kept apart by the preset in their method's name, so they meet walk's Dreamer and uniform in the P(>) table;
+    a cell not there yet is a warning; a malformed pair, and a merge that would make two runs one, are each one line."""
+    exp = tmp_path / "results" / "exp"
+    write_run(exp, "walk__dreamer__s1", [1.0])
+    write_run(exp, "walk__uniform__s1", [3.0], {"env_id": "dmc/x", "method": "uniform", "seed": 1})
+    write_run(exp, "walk_authors__uniform__s1", [2.0],
+              {"env_id": "dmc/x", "method": "uniform", "seed": 1, "preset": "authors-code"})
+    run_script("report.py", str(exp), "--same-task", "walk_authors=walk", "--reps", "50")
+    text = (exp / "report.md").read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| method |"))
+    assert "walk: mean" in header and "walk_authors" not in header  # one task, not two
+    authors = next(line for line in text.splitlines() if line.startswith("| No addressing (uniform), authors' code")
+                   and "±" not in line)
+    assert [c.strip() for c in authors.strip("|").split("|")][1:3] == ["1.00 [1.00, 1.00], p 1",
+                                                                       "0.00 [0.00, 0.00], p 1"]  # 2 > 1, 2 < 3
+    assert "| walk_authors__uniform__s1 | walk |" in text  # the Runs table names the run and its merged task
+    assert f"`python report.py {exp} --reps 50 --same-task walk_authors=walk`" in text
+    # a cell not run yet (a grid fills in parts, the command stays the same): a warning naming it, the report made
+    missing = run_script("report.py", str(exp), "--same-task", "walk_authors=walk", "stand_authors=stand")
+    assert "warning: --same-task stand_authors=stand: no task stand_authors" in missing.stderr
+    assert "walk_authors" not in next(line for line in (exp / "report.md").read_text().splitlines()
+                                      if line.startswith("| method |"))
+    malformed = run_script("report.py", str(exp), "--same-task", "walk_authors", check=False)
+    assert malformed.returncode != 0 and "--same-task walk_authors: give CELL=TASK" in malformed.stderr
+    write_run(exp, "walk_other__uniform__s1", [5.0], {"env_id": "dmc/x", "method": "uniform", "seed": 1})  # no preset
+    clash = run_script("report.py", str(exp), "--same-task", "walk_other=walk", check=False)
+    assert clash.returncode != 0 and "would be the same run of walk" in clash.stderr
+    assert "Traceback" not in missing.stderr + malformed.stderr + clash.stderr
