@@ -234,9 +234,11 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
             sys.exit(f"error: --tasks {' '.join(only_tasks)}: no such task in {folder} (there: {', '.join(found)})")
     experiment = os.path.basename(os.path.normpath(folder))
     tasks = sorted({r["task"] for r in runs})
-    for other in beside:  # --beside: another experiment's runs of the same tasks join the tables
+    for other in beside:  # --beside: another experiment's runs of the same tasks join the tables (--same-task too)
         name = os.path.basename(os.path.normpath(other))  # its runs named `experiment/run` in the Runs table
-        runs += [dict(r, name=f"{name}/{r['name']}") for r in load_experiment(other, key) if r["task"] in tasks]
+        joined = [dict(r, name=f"{name}/{r['name']}", task=(same_tasks or {}).get(r["task"], r["task"]))
+                  for r in load_experiment(other, key)]
+        runs += [r for r in joined if r["task"] in tasks]
     methods = method_order({r["method"] for r in runs})
     missing = [m for m in against if m not in methods]
     if missing:
@@ -648,7 +650,8 @@ def main():
                              "every row with, beside Dreamer and uniform mixing")
     parser.add_argument("--same-task", nargs="+", default=[], metavar="CELL=TASK",
                         help="count CELL's runs as TASK's (e.g. walk_authors=walk: a cell of --preset runs, whose "
-                             "rows stay apart by their method's preset, beside the same task's Dreamer and uniform)")
+                             "rows stay apart by their method's preset, beside the same task's Dreamer and uniform; in --beside "
+                             "folders too)")
     args = parser.parse_args()
     bad = [pair for pair in args.same_task if not re.fullmatch(r"[^=\s]+=[^=\s]+", pair)]
     if bad:

@@ -1,6 +1,7 @@
 """report.py: hand-checked table numbers from a synthetic results folder, curves, and single-run curves."""
 import json
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -459,3 +460,10 @@ def test_same_task_puts_a_presets_cell_beside_the_task_it_ran(tmp_path):
     clash = run_script("report.py", str(exp), "--same-task", "walk_other=walk", check=False)
     assert clash.returncode != 0 and "would be the same run of walk" in clash.stderr
     assert "Traceback" not in missing.stderr + malformed.stderr + clash.stderr
+    # a preset's cell in a --beside folder is renamed too, so it joins walk's columns rather than being left out
+    other = tmp_path / "results" / "other"
+    write_run(other, "walk_authors__rrama__s1", [4.0],
+              {"env_id": "dmc/x", "method": "rrama", "seed": 1, "preset": "authors-code"})
+    shutil.rmtree(exp / "walk_other__uniform__s1")  # the clashing cell above, out of the way
+    run_script("report.py", str(exp), "--same-task", "walk_authors=walk", "--beside", str(other), "--reps", "50")
+    assert "| other/walk_authors__rrama__s1 | walk |" in (exp / "report.md").read_text()
