@@ -212,7 +212,7 @@ def fmt(x: float, decimals: int) -> str:
 def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str,
                  beside: tuple = (), reference: dict = None, levels: dict = None, against: tuple = (),
                  only_tasks: tuple = (), same_tasks: dict = None):
-    runs = load_experiment(folder, key)
+    runs, same_tasks = load_experiment(folder, key), same_tasks or {}  # same_tasks: {cell: the task it counts as}
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
     if same_tasks:  # --same-task: a preset's own cells (walk_authors) are columns of the task they ran (walk)
@@ -236,7 +236,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     tasks = sorted({r["task"] for r in runs})
     for other in beside:  # --beside: another experiment's runs of the same tasks join the tables (--same-task too)
         name = os.path.basename(os.path.normpath(other))  # its runs named `experiment/run` in the Runs table
-        joined = [dict(r, name=f"{name}/{r['name']}", task=(same_tasks or {}).get(r["task"], r["task"]))
+        joined = [dict(r, name=f"{name}/{r['name']}", task=same_tasks.get(r["task"], r["task"]))
                   for r in load_experiment(other, key)]
         runs += [r for r in joined if r["task"] in tasks]
     methods = method_order({r["method"] for r in runs})
@@ -650,8 +650,8 @@ def main():
                              "every row with, beside Dreamer and uniform mixing")
     parser.add_argument("--same-task", nargs="+", default=[], metavar="CELL=TASK",
                         help="count CELL's runs as TASK's (e.g. walk_authors=walk: a cell of --preset runs, whose "
-                             "rows stay apart by their method's preset, beside the same task's Dreamer and uniform; in --beside "
-                             "folders too)")
+                             "rows stay apart by their method's preset, beside the same task's Dreamer and uniform; "
+                             "in --beside folders too)")
     args = parser.parse_args()
     bad = [pair for pair in args.same_task if not re.fullmatch(r"[^=\s]+=[^=\s]+", pair)]
     if bad:
