@@ -13,6 +13,8 @@
                                                            # policy's and the scripted expert's levels
     python report.py results/walker_tables --tasks walk stand_walk  # only these tasks' columns (shell-style
                                                            # patterns too): not the experiment's pilots and Ms
+    python report.py results/walker_tables --tasks walk stand_walk --methods dreamer uniform rrama vrama \
+        --out results/walker_tables/paper_rows            # only these rows (the paper's), e.g. for a figure
 
 An experiment folder holds one folder per run, named <cell>__<method>__s<seed> as sweep.py writes them, each with
 args.json and metrics.jsonl. A folder named otherwise is grouped by its args.json (env id, method, seed). A
@@ -211,7 +213,7 @@ def fmt(x: float, decimals: int) -> str:
 
 def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: int, decimals: int, options: str,
                  beside: tuple = (), reference: dict = None, levels: dict = None, against: tuple = (),
-                 only_tasks: tuple = (), same_tasks: dict = None):
+                 only_tasks: tuple = (), same_tasks: dict = None, only_methods: tuple = (), title: str = None):
     runs, same_tasks = load_experiment(folder, key), same_tasks or {}  # same_tasks: {cell: the task it counts as}
     if not runs:
         sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
@@ -240,9 +242,14 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
                   for r in load_experiment(other, key)]
         runs += [r for r in joined if r["task"] in tasks]
     methods = method_order({r["method"] for r in runs})
-    missing = [m for m in against if m not in methods]
-    if missing:
-        sys.exit(f"error: --against {' '.join(missing)}: no such method in {folder} (there: {', '.join(methods)})")
+    for name, named in (("--methods", only_methods), ("--against", against)):
+        missing = [m for m in named if m not in methods]  # --against among the rows --methods keeps
+        if missing:
+            sys.exit(f"error: {name} {' '.join(missing)}: no such method in {folder} (there: {', '.join(methods)})")
+        if name == "--methods" and only_methods:  # the tables' rows and the curves' lines only, in the paper's order
+            runs = [r for r in runs if r["method"] in only_methods]
+            methods = [m for m in methods if m in only_methods]
+            tasks = [t for t in tasks if any(r["task"] == t for r in runs)]
     note = " (the paper's metric)" if key == "charts/episodic_return" else ""
     header = ["method"] + [f"{t}: {h}" for t in tasks for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]
     lines = [f"# {experiment}", "",
@@ -289,7 +296,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     os.makedirs(out, exist_ok=True)
     with open(os.path.join(out, "report.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
-    plot_curves(runs, tasks, methods, key, bins, f"{experiment}: {key} (mean ± s.e. over seeds)",
+    plot_curves(runs, tasks, methods, key, bins, title or f"{experiment}: {key} (mean ± s.e. over seeds)",
                 os.path.join(out, figure), reference, levels)
     plot_scores(scores, tasks, methods, f"{experiment}: the average of {key} per run", key,
                 os.path.join(out, "scores.png"))
@@ -627,7 +634,8 @@ def main():
     parser.add_argument("--out", default=None, help="where to write (default: each experiment's folder); "
                         "with --runs, the PNG to write (default curve.png)")
     parser.add_argument("--runs", nargs="+", default=None, help="instead: draw these run folders' curves in one PNG")
-    parser.add_argument("--title", default=None, help="--runs: the figure's title (default: the first run's name)")
+    parser.add_argument("--title", default=None, help="the figure's title: with --runs (default: the first run's "
+                        "name), or the learning curves' of an experiment's report")
     parser.add_argument("--key", nargs="+", default=None, help="the metric (default charts/episodic_return; e.g. "
                         "eval/episodic_return, charts/success_rate); with --runs, one panel per key given (e.g. "
                         "losses/kl charts/imagined_return) instead of the returns")
@@ -648,6 +656,9 @@ def main():
     parser.add_argument("--against", nargs="+", default=[], metavar="METHOD",
                         help="methods (as the report names them in its folders: vrama, vrama@authors-code) to compare "
                              "every row with, beside Dreamer and uniform mixing")
+    parser.add_argument("--methods", nargs="+", default=[], metavar="METHOD",
+                        help="only these rows (methods as the report names them in its folders: dreamer, uniform, "
+                             "rrama@authors-code), in the tables and the curves")
     parser.add_argument("--same-task", nargs="+", default=[], metavar="CELL=TASK",
                         help="count CELL's runs as TASK's (e.g. walk_authors=walk: a cell of --preset runs, whose "
                              "rows stay apart by their method's preset, beside the same task's Dreamer and uniform; "
@@ -657,8 +668,8 @@ def main():
     if bad:
         parser.error(f"--same-task {bad[0]}: give CELL=TASK, e.g. walk_authors=walk")
     same_tasks = dict(pair.split("=") for pair in args.same_task)
-    if args.runs and args.against:
-        parser.error("--against: for the tables of an experiment folder, not with --runs")
+    if args.runs and (args.against or args.methods):
+        parser.error("--against and --methods: for the tables of an experiment folder, not with --runs")
     if args.runs:
         return plot_runs(args.runs, args.out or "curve.png", args.title, args.key)
     if args.key and len(args.key) > 1:
@@ -674,6 +685,8 @@ def main():
     options += f" --against {' '.join(args.against)}" if args.against else ""
     options += f" --tasks {' '.join(shlex.quote(t) for t in args.tasks)}" if args.tasks else ""
     options += f" --same-task {' '.join(args.same_task)}" if args.same_task else ""
+    options += f" --methods {' '.join(args.methods)}" if args.methods else ""
+    options += f" --title {shlex.quote(args.title)}" if args.title else ""
     reference = None
     if args.reference:
         try:
@@ -713,7 +726,7 @@ def main():
         if not experiments:
             sys.exit(f"error: {folder}: holds no run folders (<run>/args.json) and no experiments")
         # --against names one experiment's methods and --tasks its tasks: refused before any report is written
-        one_experiment = [f"--{name.replace('_', '-')}" for name in ("against", "tasks", "same_task")
+        one_experiment = [f"--{name.replace('_', '-')}" for name in ("against", "tasks", "same_task", "methods")
                           if getattr(args, name)]
         if one_experiment and (len(experiments) > 1 or len(args.folders) > 1):
             sys.exit(f"error: {' and '.join(one_experiment)}: give one experiment folder (it names that experiment's "
@@ -723,7 +736,7 @@ def main():
                 os.path.join(args.out, os.path.basename(experiment)) if args.out else experiment
             write_report(experiment, out, args.key, args.reps, args.seed, args.bins, args.decimals,
                          options + (f" --out {out}" if args.out else ""), tuple(args.beside), reference, levels,
-                         tuple(args.against), tuple(args.tasks), same_tasks)
+                         tuple(args.against), tuple(args.tasks), same_tasks, tuple(args.methods), args.title)
 
 
 if __name__ == "__main__":

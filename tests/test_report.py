@@ -430,6 +430,33 @@ def test_tasks_keep_only_the_named_columns_and_name_a_missing_one(results, tmp_p
     assert not (results / "report.md").exists()  # refused before any report was written
 
 
+def test_methods_keep_only_the_named_rows_and_name_a_missing_one(results, tmp_path):
+    """--methods: the tables' rows and the curves' lines alone (the headline figure's paper rows), in the paper's order
+    whatever the order given; a task left with no run is dropped; --title names the curves; the "Made by" line repeats
+    both; a method not in the folder is one line naming it, before anything is written."""
+    out = tmp_path / "rows"
+    run_script("report.py", str(results), "--methods", "rrama", "dreamer", "--title", "two rows", "--reps", "50",
+               "--out", str(out))
+    text = (out / "report.md").read_text()
+    rows = [line.split(" | ")[0] for line in text.splitlines()
+            if line.startswith("| ") and "±" in line and not line.startswith("| method")]
+    assert rows == ["| Dreamer", "| RRAMa"]  # no vrama row; the paper's order
+    header = next(line for line in text.splitlines() if line.startswith("| method |"))
+    assert "walk: mean" in header and "run: mean" in header and "dmc/hop" not in header  # dmc/hop: vrama alone
+    assert "dmc_hop__x__vrama__1__123" not in text  # nor in the Runs table
+    assert f"`python report.py {results} --reps 50 --methods rrama dreamer --title 'two rows' --out {out}`" in text
+    assert (out / "curves.png").stat().st_size > 0
+    bad = run_script("report.py", str(results), "--methods", "dreamer", "rrma", "--out", str(tmp_path / "bad"),
+                     check=False)
+    assert bad.returncode != 0 and "--methods rrma: no such method" in bad.stderr and "rrama" in bad.stderr
+    assert "Traceback" not in bad.stderr and not (tmp_path / "bad").exists()
+    left_out = run_script("report.py", str(results), "--methods", "dreamer", "--against", "rrama", check=False)
+    assert left_out.returncode != 0 and "--against rrama: no such method" in left_out.stderr  # not among the rows
+    with_runs = run_script("report.py", "--runs", str(results / "walk__dreamer__s1"), "--methods", "dreamer",
+                           check=False)
+    assert with_runs.returncode != 0 and "--methods" in with_runs.stderr
+
+
 def test_same_task_puts_a_presets_cell_beside_the_task_it_ran(tmp_path):
     """--same-task walk_authors=walk: a cell of --preset runs (one spec names its cells apart) joins walk's columns, its
     rows kept apart by the preset in their method's name, so they meet walk's Dreamer and uniform in the P(>) table;
