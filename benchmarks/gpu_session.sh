@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One planned GPU session (issue 39: CUDA graphs), in stages, each writing its output under $OUT. Run by the device
 # tool from the repository root, with the packages its image lacks carried in .gpu/ (not committed; how to make it:
-# docs/benchmarks.md, section "`--cuda-graph`: the whole update as CUDA graphs"):
+# docs/benchmarks.md, section "Set-up on a GPU machine"):
 #   run(command="BUDGET=555 bash benchmarks/gpu_session.sh check graphs precision profile", carry=[".gpu"])
 #       # 256 s on an H100 on 2026-11-24 (its tables: results/benchmarks/2026-11-24-h100.json)
 # 2026-11-26 (H200, one 15-minute session): `check` passed on the current code (issue 39's last step), and the walker
