@@ -31,6 +31,9 @@ GOAL_XY = np.array([0.62, 0.0])  # centre of the blue target zone
 ZONE_HALF = np.array([0.06, 0.08])  # the zone is a 12 x 16 cm rectangle
 START_DISTANCE = 0.50  # object-to-zone distance at reset: the maximal return is 50 (cm)
 SHOULDER_XY = np.array([0.15, 0.0])  # the arm's pan axis, used to keep object starts within reach
+# start="fixed": the paper's "initial object position", one spot START_DISTANCE from the zone, yaw 0: on the zone's left
+# (+y) at 100° around it, where the spot behind it is within reach (the random draw's range is 91-113°)
+FIXED_START_ANGLE = np.deg2rad(100.0)
 JOINTS = ("pan", "lift", "elbow", "wrist1", "wrist2", "wrist3", "finger")
 HOME = np.array([0.0, 0.0, 2.10, 1.0, 0.0, 0.0, 0.02])  # hand above the table, pointing down
 MAX_ACC = np.array([3.0, 3.0, 3.0, 4.0, 4.0, 4.0, 0.2])  # joint acceleration at action 1 (rad/s^2; m/s^2)
@@ -220,9 +223,10 @@ class KitchenEnv(gymnasium.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": int(round(1 / CONTROL_DT))}
 
     def __init__(self, task="bluebox", active_joints=3, obs_type="pixels", width=96, height=64, shadows=False,
-                 max_steps=500, render_mode="rgb_array"):
+                 max_steps=500, render_mode="rgb_array", start="fixed"):
         assert task in OBJECTS and active_joints in (3, 7) and obs_type in ("pixels", "state")
-        self.task, self.active_joints, self.obs_type = task, active_joints, obs_type
+        assert start in ("fixed", "random"), f"start must be 'fixed' or 'random', not {start!r}"
+        self.task, self.active_joints, self.obs_type, self.start = task, active_joints, obs_type, start
         self.width, self.height, self.shadows, self.max_steps = width, height, shadows, max_steps
         self.render_mode = render_mode
         self.model = mujoco.MjModel.from_xml_string(_kitchen_xml(task))
@@ -259,16 +263,17 @@ class KitchenEnv(gymnasium.Env):
         super().reset(seed=seed)
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[self._qadr] = HOME
-        # The object starts exactly START_DISTANCE from the zone's centre, to its left or right, on the table
-        # and within the arm's reach, and so is the spot behind it where a pusher has to stand.
+        # The object starts exactly START_DISTANCE from the zone's centre. "fixed": always at FIXED_START_ANGLE with
+        # yaw 0. "random": to the zone's left or right, on the table and within the arm's reach, and so is the spot
+        # behind it where a pusher has to stand, with a random yaw.
         while True:
-            angle = self.np_random.uniform(-np.pi, np.pi)
+            angle = FIXED_START_ANGLE if self.start == "fixed" else self.np_random.uniform(-np.pi, np.pi)
             xy = GOAL_XY + START_DISTANCE * np.array([np.cos(angle), np.sin(angle)])
             behind = xy + 0.1 * (xy - GOAL_XY) / START_DISTANCE
             reach, reach_behind = np.linalg.norm(xy - SHOULDER_XY), np.linalg.norm(behind - SHOULDER_XY)
             if 0.38 <= reach <= 0.72 and reach_behind <= 0.76 and xy[0] >= 0.42 and abs(xy[1]) <= 0.5:
                 break
-        yaw = self.np_random.uniform(-np.pi, np.pi)
+        yaw = 0.0 if self.start == "fixed" else self.np_random.uniform(-np.pi, np.pi)
         self.data.qpos[self._obj:self._obj + 7] = [*xy, TABLE_Z, np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
         self._target = HOME.copy()  # position-servo targets, integrated from the commanded velocities
         self._velocity = np.zeros(len(JOINTS))  # commanded joint velocities, integrated from the actions

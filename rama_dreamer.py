@@ -76,7 +76,8 @@ class Args:
     seed: int = 1
     """seed of python, numpy, torch, the environment and every sampler"""
     preset: Optional[Literal["authors-code"]] = None
-    """`authors-code`: the authors' code's values of the flags in PRESETS (README, deviations); given flags win"""
+    """`authors-code`: the authors' code's values of the flags in PRESETS; given flags win
+    (docs/deviations.md#authors-preset)"""
     device: str = "auto"
     """`auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ..."""
     total_steps: int = 2_000_000
@@ -126,6 +127,9 @@ class Args:
     """camera id; -1 = the suite default used by Dreamer (0, or 2 for quadruped)"""
     kitchen_joints: Literal[3, 7] = 3
     """active kitchen-robot joints (3: pan, lift, elbow, as in the paper; or all 7)"""
+    kitchen_start: Literal["fixed", "random"] = "fixed"
+    """the kitchen object's start, 50 cm from the zone: one spot with yaw 0 (the paper's "initial object position")
+    or a random spot on that circle with a random yaw (docs/deviations.md#kitchen-start)"""
 
     # World model
     deter_size: int = 200
@@ -139,9 +143,9 @@ class Args:
     mlp_units: int = 400
     """units of the reward, value and actor MLPs (and of the state encoder/decoder)"""
     free_nats: Optional[float] = None
-    """KL free nats; None = 3 for pixels (the paper), 0 for state (see README)"""
+    """KL free nats; None = 3 for pixels (the paper), 0 for state (docs/deviations.md#state-observations)"""
     obs_std: Optional[float] = None
-    """std of p(o|s); None = 1 for pixels (the paper), 0.1 for state (see README)"""
+    """std of p(o|s); None = 1 for pixels (the paper), 0.1 for state (docs/deviations.md#state-observations)"""
     kl_scale: float = 1.0
     """weight of the KL term"""
     model_lr: float = 6e-4
@@ -174,6 +178,12 @@ class Args:
     """the actor's minimal std"""
     actor_mean_scale: float = 5.0
     """the actor's pre-tanh mean is squashed to [-scale, scale]"""
+    slow_target: bool = False
+    """bootstrap the λ-returns from a copy of the value refreshed every --slow-target-every updates (DreamerV2)"""
+    slow_target_every: int = 100
+    """updates between two copies of the value into its slow target (the authors' `slow_target_update: 100`)"""
+    reward_scale: float = 1.0
+    """the world model learns rewards times this, so values scale with it; logged returns and success stay raw"""
     eval_action: Literal["sample-mode", "mean"] = "sample-mode"
     """evaluation's action: Dreamer v1's (the most likely of 100 samples) or the tanh of the Gaussian mean"""
 
@@ -215,17 +225,19 @@ class Args:
     address_imagine_starts: int = 0
     """VRAMa: imagine from this many random posteriors of the picks; 0 = all (the paper)"""
     vrama_select: Literal["embeddings", "frames"] = "embeddings"
-    """VRAMa: what the straight-through one-hots multiply: the chunks' encodings or their frames (see README)"""
+    """VRAMa: what the straight-through one-hots multiply: the chunks' encodings or their frames
+    (docs/deviations.md#vrama-select)"""
     vrama_reduction: Literal["mean", "sum"] = "mean"
     """VRAMa: "mean" = γ^t-weighted mean of V_λ (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
     address_layer_norm: bool = False
-    """layer-normalise f_φ's per-step input layer (not in the paper; see README)"""
+    """layer-normalise f_φ's per-step input layer (not in the paper; docs/deviations.md#address-net-size)"""
     address_reward_input: bool = False
     """feed f_φ the stored reward of each step too (not in the paper)"""
     address_stop_grad_x: Optional[bool] = None
     """no gradient through f(x); None = on for rrama, rbrama; off for vrama"""
     address_x_net: Literal["shared", "frozen"] = "shared"
-    """f(x) by f_φ itself (the paper) or by a frozen copy of its initial weights (not in the paper; see README)"""
+    """f(x) by f_φ itself (the paper) or by a frozen copy of its initial weights (not in the paper;
+    docs/deviations.md#frozen-x-net)"""
     address_standardize: bool = True
     """standardise the REINFORCE advantages over the batch (as the authors' code does)"""
     address_candidates_mode: Literal["memory", "fresh"] = "memory"
@@ -344,7 +356,7 @@ ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": No
                "addressed_wm_rule": "rows", "cuda_graph": None,
                "init": "torch", "eval_action": "mean"}
 # --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
-# era) where it departs from the paper's text; README, deviations 16-23, names the file and line of each value
+# era) where it departs from the paper's text; docs/deviations.md#authors-preset names the file and line of each value
 PRESETS = {"authors-code": dict(
     own_episodes_in_m=False, address_lr=1e-4, address_adam_eps=1e-5, address_weight_decay=1e-6,
     address_candidates_mode="fresh", address_batch=102, address_oversample_ends=True, reward_mask_borrowed="all",
@@ -461,11 +473,11 @@ class DMCEnv(gymnasium.Env):
 
 
 class ActionRepeat(gymnasium.Wrapper):
-    """Each action repeated `repeat` env steps within `time_limit` env steps per episode, for every family (README):
-    the rewards add up, success at any step counts, and an episode is truncated once it has taken time_limit env
-    steps (or by the env itself), so it lasts ceil(time_limit / repeat) agent steps, the last action repeated only
-    as far as the limit. The env steps with `step_physics(action)` -> (reward, terminated, truncated, info) and
-    renders or reads its observation once per agent step, with `observe()`."""
+    """Each action repeated `repeat` env steps within `time_limit` env steps per episode, for every family
+    (docs/deviations.md#action-repeat): the rewards add up, success at any step counts, and an episode is truncated
+    once it has taken time_limit env steps (or by the env itself), so it lasts ceil(time_limit / repeat) agent
+    steps, the last action repeated only as far as the limit. The env steps with `step_physics(action)` -> (reward,
+    terminated, truncated, info) and renders or reads its observation once per agent step, with `observe()`."""
 
     def __init__(self, env: gymnasium.Env, repeat: int, time_limit: int):
         super().__init__(env)
@@ -500,7 +512,8 @@ def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
     if env_id.startswith("kitchen/"):
         from kitchen_env import KitchenEnv
 
-        env = KitchenEnv(env_id.split("/")[1], args.kitchen_joints, args.obs_type, max_steps=args.time_limit)
+        env = KitchenEnv(env_id.split("/")[1], args.kitchen_joints, args.obs_type, max_steps=args.time_limit,
+                         start=args.kitchen_start)
         env.reset(seed=seed)  # seeds the env's generator; each episode's reset reseeds it
     else:
         env = DMCEnv(env_id, seed, args.obs_type, args.image_size, args.camera)
@@ -1031,18 +1044,20 @@ def lambda_return(reward, value, pcont, bootstrap, lam: float):
 
 
 def imagine(wm: WorldModel, actor: Actor, start: dict, horizon: int):
-    """Roll the prior forward from start states (N, ...) with actions from the actor: features (H, N, F)."""
-    state, feat, feats = start, wm.rssm.feat(start), []
+    """Roll the prior forward from start states (N, ...) with actions from the actor: features (H, N, F) and the
+    actions taken (H, N, A)."""
+    state, feat, feats, actions = start, wm.rssm.feat(start), [], []
     for _ in range(horizon):
-        state = wm.rssm.img_step(state, actor(feat.detach()).rsample())
+        actions.append(actor(feat.detach()).rsample())  # (N, A)
+        state = wm.rssm.img_step(state, actions[-1])
         feat = wm.rssm.feat(state)  # (N, F): the step's feature, and the actor's input at the next step
         feats.append(feat)
-    return torch.stack(feats, 0)
+    return torch.stack(feats, 0), torch.stack(actions, 0)
 
 
 def imagined_returns(wm: WorldModel, value_net: nn.Module, feats, gamma: float, lam: float,
                      detach_reward: bool = False):
-    """Rewards and values along features (H, N, F) -> λ-returns (H-1, N), their weights, values (H, N);
+    """Rewards and values along features (H, N, F) -> λ-returns (H-1, N), their weights, values and rewards (H, N);
     detach_reward: the gradient reaches the features through the values only."""
     reward = wm.reward(feats).squeeze(-1)  # (H, N)
     reward = reward.detach() if detach_reward else reward
@@ -1051,14 +1066,14 @@ def imagined_returns(wm: WorldModel, value_net: nn.Module, feats, gamma: float, 
     returns = lambda_return(reward[:-1], value[:-1], pcont[:-1], value[-1], lam)  # (H-1, N)
     # weight of step t = γ^t: later imagined steps matter less
     weights = torch.cumprod(torch.cat([torch.ones_like(pcont[:1]), pcont[:-2]], 0), 0).detach()  # (H-1, N)
-    return returns, weights, value
+    return returns, weights, value, reward
 
 
 class Freeze:
     """Turn off gradients of some modules inside a block: actor and value losses must not train the model."""
 
     def __init__(self, *modules):
-        self._params = [p for m in modules for p in m.parameters()]
+        self._params = [p for m in modules for p in m.parameters() if p.requires_grad]  # a slow target stays off
 
     def __enter__(self):
         for p in self._params:
@@ -1094,6 +1109,8 @@ class Agent(nn.Module):
                            args.actor_mean_scale)
         self.value = MLP(feat, args.mlp_units, 3, 1)
         set_speed_options(init_weights(self, args.init), args.precision, args.channels_last)
+        # --slow-target: the λ-returns bootstrap from a copy that only sync_slow_target moves (DreamerV2; not in v1)
+        self.value_target = copy.deepcopy(self.value).requires_grad_(False) if args.slow_target else None
         # capturable (--cuda-graph): Adam keeps its step counts on the device, so that a CUDA graph can hold its step
         adam = functools.partial(torch.optim.Adam, eps=args.adam_eps, capturable=args.cuda_graph)
         self.model_opt = adam(self.wm.parameters(), lr=args.model_lr)
@@ -1111,6 +1128,8 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     step_model False leaves the model as it is (the actor and value still learn from the batch's posteriors)."""
     timings = {}
     t0 = time.perf_counter()
+    if args.reward_scale != 1.0:  # docs/deviations.md#metaworld-reward-scale: what the model, value and actor see
+        batch = {**batch, "reward": batch["reward"] * args.reward_scale}
     wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask,
                                               args.obs_std)
 
@@ -1123,9 +1142,13 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     t0 = time.perf_counter()
     with Freeze(agent.wm):  # actor gradients flow through the model, but do not train it
         start = {k: v.detach().flatten(0, 1) for k, v in post.items()}  # (B*T, ...): every posterior
-        feats = imagine(agent.wm, agent.actor, start, args.horizon)  # (H, B*T, F)
-    # one value pass serves both losses: the actor's backward reaches the actor only, the value's the value only
-    returns, weights, value = imagined_returns(agent.wm, agent.value, feats, args.gamma, args.return_lambda)
+        feats, actions = imagine(agent.wm, agent.actor, start, args.horizon)  # (H, B*T, F), (H, B*T, A)
+    # without a slow target one value pass serves both losses: the actor's backward reaches the actor only, the
+    # value's the value only; with one, the λ-returns bootstrap from the target and the value is fitted to them
+    bootstrap_net = agent.value if agent.value_target is None else agent.value_target
+    returns, weights, value, reward = imagined_returns(agent.wm, bootstrap_net, feats, args.gamma, args.return_lambda)
+    if agent.value_target is not None:
+        value = agent.value(feats.detach()).squeeze(-1)  # (H, B*T)
     actor_loss = -(weights * returns).mean()
     metrics["losses/actor"] = actor_loss
     metrics["losses/actor_grad_norm"] = optimizer_step(agent.actor_opt, actor_loss, agent.actor.parameters(),
@@ -1135,12 +1158,30 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     metrics["losses/value_grad_norm"] = optimizer_step(agent.value_opt, value_loss, agent.value.parameters(),
                                                        args.grad_clip)
     metrics["charts/imagined_return"] = returns.mean()
+    metrics.update(imagination_diagnostics(agent.actor, start, actions, reward, value))
     timings["actor_critic"] = time.perf_counter() - t0
     if step_model and not args.imagine_after_model_step:  # last: imagination rolled the model as it was
         t0 = time.perf_counter()
         metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, None, agent.wm.parameters(), args.grad_clip)
         timings["world_model"] += time.perf_counter() - t0
     return {"metrics": metrics, "timings": timings}
+
+
+def imagination_diagnostics(actor: Actor, start: dict, actions, reward, value) -> dict:
+    """What tells an overshooting critic from a reward head that extrapolates: the imagined rewards (H, N), the
+    value (H, N) at the first and last imagined steps, the actor's std at the start states and how many of the
+    imagined actions (H, N, A) sit at the tanh's edges. A round's log averages them over its updates."""
+    with torch.no_grad():
+        std = actor(RSSM.feat(start)).base_dist.base_dist.scale  # (N, A): the Gaussian's before the tanh
+        return {"imagine/reward_mean": reward.mean(), "imagine/reward_max": reward.max(),
+                "imagine/value_first": value[0].mean(), "imagine/value_last": value[-1].mean(),
+                "imagine/actor_std": std.mean(), "imagine/saturated_actions": (actions.abs() > 0.99).float().mean()}
+
+
+def sync_slow_target(agent: Agent, updates: int, every: int):
+    """--slow-target: copy the value into its target every `every` updates (in place: a CUDA graph reads it)."""
+    if agent.value_target is not None and updates % every == 0:
+        agent.value_target.load_state_dict(agent.value.state_dict())
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1175,7 +1216,7 @@ def select_chunks(one_hot, chunks):
 @torch.no_grad()
 def predicted_reward_sum(wm: WorldModel, batch: dict):
     """Σ_t of the reward head's mean on the posterior states of each chunk: (B,), the bandit's reward (Eqs. 2-3,
-    whose r_t ~ p(r_t | s_t) is replaced by its mean, as in the authors' code: README, deviation 26)."""
+    whose r_t ~ p(r_t | s_t) is replaced by its mean, as in the authors' code: docs/deviations.md#reward-head-mean)."""
     post, _ = wm.rssm.observe(wm.encoder(batch["obs"]), batch["action"])
     return wm.reward(wm.rssm.feat(post)).squeeze(-1).sum(1)
 
@@ -1214,8 +1255,8 @@ def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float,
             if 0 < starts < len(start["deter"]):
                 keep = torch.randperm(len(start["deter"]), device=one_hot.device)[:starts]  # (starts,)
                 start = {k: v[keep] for k, v in start.items()}
-            feats = imagine(agent.wm, agent.actor, start, horizon)  # (H, N, F)
-        returns, weights, _ = imagined_returns(agent.wm, agent.value, feats, gamma, lam,
+            feats, _ = imagine(agent.wm, agent.actor, start, horizon)  # (H, N, F)
+        returns, weights, _, _ = imagined_returns(agent.wm, agent.value, feats, gamma, lam,
                                                detach_reward=objective == "posterior")  # (H-1, N) each
         if reduction == "sum":
             return -returns.sum(0).mean()
@@ -1235,7 +1276,8 @@ class Addressing:
                                     weight_decay=args.address_weight_decay / args.address_lr,
                                     capturable=args.cuda_graph)
         # f(x)'s network: f_φ itself, or a frozen copy of its initial weights. Under the stop-gradient a step of φ
-        # is meant to move f(M_j) only (Section 4.3), yet the shared weights move f(x) with it (README, deviations).
+        # is meant to move f(M_j) only (Section 4.3), yet the shared weights move f(x) with it
+        # (docs/deviations.md#frozen-x-net).
         # .to() packs the copy's GRU weights into the one buffer cuDNN wants (a deepcopy leaves them apart)
         self.x_net = self.net if args.address_x_net == "shared" else \
             copy.deepcopy(self.net).requires_grad_(False).to(device)
@@ -1972,6 +2014,7 @@ def train_round(task: Task):
         out = task.step(x, plan)
         out["timings"]["batch_sampling"] += waited
         state["updates"], done = state["updates"] + 1, done + 1
+        sync_slow_target(task.agent, state["updates"], args.slow_target_every)
         if not task.noticed:  # the first update of this process: on a CPU, what the run would cost
             task.noticed, notice = True, first_update_notice(args, task.device, task.env_steps,
                                                              time.time() - round_start)

@@ -71,7 +71,8 @@ def _episode(S, env_id, repeat, limit, seed=3, expert=False, wrapped=True):
     """Length and return of one episode of env_id (state observations) with seeded random actions or the expert.
     wrapped False: the same episode without ActionRepeat, each action sent `repeat` times to the env's own step()
     and the episode ended at `limit` env steps or by the env: the reference the wrapper must reproduce."""
-    args = S.resolve_defaults(S.Args(env_id=env_id, obs_type="state", action_repeat=repeat, time_limit=limit))
+    start = {"kitchen_start": "random"} if env_id.startswith("kitchen/") else {}  # the start FACTS were measured from
+    args = S.resolve_defaults(S.Args(env_id=env_id, obs_type="state", action_repeat=repeat, time_limit=limit, **start))
     env = S.make_env(args, env_id, seed)
     assert isinstance(env, S.ActionRepeat)
     env = env if wrapped else env.unwrapped

@@ -160,13 +160,15 @@ def test_unwritable_run_dir(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", ["bluebox", "bluecone"])
-def test_tiny_run_on_the_kitchen(tmp_path, task):
+@pytest.mark.parametrize("task, start", [("bluebox", "fixed"), ("bluecone", "random")])
+def test_tiny_run_on_the_kitchen(tmp_path, task, start):
     no_horizon = [f for i, f in enumerate(TINY) if "--horizon" not in TINY[max(i - 1, 0):i + 1]]
-    run("--env-id", f"kitchen/{task}", "--run-dir", str(tmp_path), *no_horizon, "--total-steps", "300")
+    run("--env-id", f"kitchen/{task}", "--run-dir", str(tmp_path), *no_horizon, "--total-steps", "300",
+        "--kitchen-start", start)
     run_path = only_run(tmp_path)
     with open(os.path.join(run_path, "args.json")) as f:
-        assert json.load(f)["horizon"] == 25  # the paper's horizon for this domain
+        saved = json.load(f)
+    assert saved["horizon"] == 25 and saved["kitchen_start"] == start  # the paper's horizon for this domain
     path = sorted(glob.glob(os.path.join(run_path, "episodes", "*.npz")))[0]
     with np.load(path) as ep:
         assert ep["obs"].shape == (51, 64, 96, 3) and ep["action"].shape == (51, 3) and str(ep["task"]) == task

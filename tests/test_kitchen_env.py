@@ -59,8 +59,9 @@ def test_other_observation_size():
 
 
 @pytest.mark.parametrize("task", TASKS)
-def test_rewards_telescope_and_truncate_at_500(task):
-    env = kitchen_env.KitchenEnv(task=task, obs_type="state")
+@pytest.mark.parametrize("start", ["fixed", "random"])
+def test_rewards_telescope_and_truncate_at_500(task, start):
+    env = kitchen_env.KitchenEnv(task=task, obs_type="state", start=start)
     env.action_space.seed(1)
     # a random start, then the expert, so that the object really moves and rewards are not all zero
     policy = lambda e: e.action_space.sample() if e._steps < 50 else kitchen_env.scripted_action(e)  # noqa: E731
@@ -78,7 +79,7 @@ def test_rewards_telescope_and_truncate_at_500(task):
 
 def test_seeding():
     def first(seed):
-        env = kitchen_env.KitchenEnv()
+        env = kitchen_env.KitchenEnv(start="random")
         env.action_space.seed(seed)
         frames, rewards = [env.reset(seed=seed)[0]], []
         start = env.object_pos()
@@ -107,6 +108,26 @@ def test_scripted_expert_pushes_object_into_zone(task):
     env.close()
     assert sum(r >= 40 for r in returns) >= 3 and sum(successes) >= 3, (returns, successes)
     assert max(returns) <= 50.0 + 1e-6  # the initial distance bounds the return
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_fixed_start_is_one_spot_the_expert_solves(task):
+    """start="fixed" (the default, the paper's "initial object position"): every seed puts the object on the same spot,
+    50 cm from the zone's centre on its left, yaw 0; the scripted pusher scores at least 45 of the 50 from there."""
+    env = kitchen_env.KitchenEnv(task=task, obs_type="state")
+    assert env.start == "fixed"
+    starts = []
+    for seed in range(3):
+        total, start, _ = rollout(env, seed, kitchen_env.scripted_action)
+        env.reset(seed=seed)
+        starts.append(env.data.qpos[env._obj:env._obj + 7].copy())
+        assert start == pytest.approx(50.0, abs=1e-9) and total >= 45, (seed, total)
+    env.close()
+    assert all(np.array_equal(s, starts[0]) for s in starts)
+    angle = np.rad2deg(np.arctan2(starts[0][1] - kitchen_env.GOAL_XY[1], starts[0][0] - kitchen_env.GOAL_XY[0]))
+    assert angle == pytest.approx(100.0) and np.allclose(starts[0][3:], [1, 0, 0, 0])  # yaw 0
+    with pytest.raises(AssertionError, match="start must be"):
+        kitchen_env.KitchenEnv(start="fixd")
 
 
 def test_scripted_expert_with_seven_joints():

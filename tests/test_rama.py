@@ -219,8 +219,8 @@ def test_vrama_reduction_mean_and_sum(monkeypatch):
     """"mean" is Dreamer's γ^t-weighted mean over steps and starts; "sum" is Eq. 1's −Σ_t V_λ, mean over starts."""
     returns = torch.tensor([[1.0, 2.0], [3.0, 4.0]])  # (H-1=2 steps, N=2 starts)
     weights = torch.tensor([[1.0, 1.0], [0.5, 0.5]])
-    monkeypatch.setattr(rd, "imagined_returns", lambda *a, **k: (returns, weights, None))
-    monkeypatch.setattr(rd, "imagine", lambda *a: None)
+    monkeypatch.setattr(rd, "imagined_returns", lambda *a, **k: (returns, weights, None, None))
+    monkeypatch.setattr(rd, "imagine", lambda *a: (None, None))
     args = rd.Args(obs_type="state", **SMALL)
     agent = rd.Agent((3,), 2, args)
     rng = np.random.default_rng(0)

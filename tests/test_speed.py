@@ -67,8 +67,8 @@ def test_bf16_losses_stay_close_to_fp32():
     for key in ("losses/obs_loglik", "losses/reward_loglik", "losses/kl"):
         assert abs(float(m16[key] - m32[key])) <= 0.01 * abs(float(m32[key].detach())) + 1e-3, key
     feats = torch.randn(3, 5, fp32.wm.rssm.feat_size)
-    r32, _, v32 = rd.imagined_returns(fp32.wm, fp32.value, feats, 0.99, 0.95)
-    r16, _, v16 = rd.imagined_returns(bf16.wm, bf16.value, feats, 0.99, 0.95)
+    r32, _, v32, _ = rd.imagined_returns(fp32.wm, fp32.value, feats, 0.99, 0.95)
+    r16, _, v16, _ = rd.imagined_returns(bf16.wm, bf16.value, feats, 0.99, 0.95)
     assert v16.dtype == torch.float32  # output layers stay fp32
     assert dtypes == {"hidden": torch.bfloat16, "out": torch.float32, "conv": torch.bfloat16}
     assert not torch.equal(v16, v32)  # bf16's rounding shows
@@ -97,8 +97,9 @@ def test_one_value_pass_matches_the_two_pass_update():
     nn.utils.clip_grad_norm_(ref.wm.parameters(), args.grad_clip)
     ref.model_opt.step()
     with rd.Freeze(ref.wm, ref.value):
-        feats = rd.imagine(ref.wm, ref.actor, {k: v.detach().flatten(0, 1) for k, v in post.items()}, args.horizon)
-        returns, weights, _ = rd.imagined_returns(ref.wm, ref.value, feats, args.gamma, args.return_lambda)
+        start = {k: v.detach().flatten(0, 1) for k, v in post.items()}
+        feats, _ = rd.imagine(ref.wm, ref.actor, start, args.horizon)
+        returns, weights, _, _ = rd.imagined_returns(ref.wm, ref.value, feats, args.gamma, args.return_lambda)
         actor_loss = -(weights * returns).mean()
     ref.actor_opt.zero_grad()
     actor_loss.backward()
@@ -134,8 +135,9 @@ def test_dreamer_v1_order_imagines_with_the_model_before_its_step():
     ref = reference
     loss, post, _ = rd.world_model_loss(ref.wm, batch, args.free_nats, args.kl_scale, obs_std=args.obs_std)
     with rd.Freeze(ref.wm, ref.value):
-        feats = rd.imagine(ref.wm, ref.actor, {k: v.detach().flatten(0, 1) for k, v in post.items()}, args.horizon)
-        returns, weights, _ = rd.imagined_returns(ref.wm, ref.value, feats, args.gamma, args.return_lambda)
+        start = {k: v.detach().flatten(0, 1) for k, v in post.items()}
+        feats, _ = rd.imagine(ref.wm, ref.actor, start, args.horizon)
+        returns, weights, _, _ = rd.imagined_returns(ref.wm, ref.value, feats, args.gamma, args.return_lambda)
     value_pred = ref.value(feats[:-1].detach()).squeeze(-1)
     value_loss = -(weights * rd.gaussian_loglik(value_pred, returns.detach(), 0)).mean()
     for opt, module, part_loss in ((ref.actor_opt, ref.actor, -(weights * returns).mean()),

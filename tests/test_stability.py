@@ -1,0 +1,104 @@
+"""The critic's guards and what tells its failures apart: --reward-scale, --slow-target and the imagination
+diagnostics (imagine/*), in both scripts (their shared sections are one text)."""
+import glob
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+import rama_dreamer as rd
+import rama_metaworld as rmw
+from helpers import TINY, run_script, synthetic_replay
+
+SMALL = dict(obs_type="state", deter_size=8, stoch_size=4, hidden_size=8, mlp_units=8, horizon=3, free_nats=0.0,
+             obs_std=1.0, batch_size=2, seq_len=4)
+
+
+def _batch():
+    rng = np.random.default_rng(0)
+    return rd.to_torch(synthetic_replay((5,), 2, episodes=1, length=12, rng=rng).sample(2, 4, rng), "cpu")
+
+
+def _step(agent, batch, args, seed=0):
+    torch.manual_seed(seed)  # the same imagined actions in both calls
+    return {k: float(v.detach()) for k, v in rd.train_step(agent, batch, args)["metrics"].items()}
+
+
+def test_reward_scale_is_the_same_step_as_scaled_rewards():
+    """--reward-scale s on rewards r is exactly the update the agent makes on rewards s·r with scale 1."""
+    scaled_args, plain_args = rd.Args(reward_scale=0.1, **SMALL), rd.Args(**SMALL)
+    torch.manual_seed(3)
+    first = rd.Agent((5,), 2, scaled_args)
+    second = rd.Agent((5,), 2, plain_args)
+    second.load_state_dict(first.state_dict())
+    batch = _batch()
+    got = _step(first, batch, scaled_args)
+    expected = _step(second, {**batch, "reward": batch["reward"] * 0.1}, plain_args)
+    assert got == pytest.approx(expected, rel=1e-6, abs=1e-6)
+    assert got != pytest.approx(_step(second, batch, plain_args), rel=1e-3)  # the scale did change the update
+
+
+def test_slow_target_bootstraps_from_its_copy_until_synced():
+    """With --slow-target the λ-returns (so the actor's loss) come from the copy, the value learns towards them, and
+    the copy moves only when sync_slow_target says so."""
+    target_args, plain_args = rd.Args(slow_target=True, **SMALL), rd.Args(**SMALL)
+    torch.manual_seed(4)
+    agent = rd.Agent((5,), 2, target_args)
+    twin = rd.Agent((5,), 2, plain_args)  # its value is agent's target: the same returns
+    twin.load_state_dict({k: v for k, v in agent.state_dict().items() if not k.startswith("value_target.")})
+    assert not any(p.requires_grad for p in agent.value_target.parameters())
+    with torch.no_grad():  # the value drifts away from its target
+        agent.value.out.bias.add_(50.0)
+    copy = {k: v.clone() for k, v in agent.value_target.state_dict().items()}
+    batch = _batch()
+    got, expected = _step(agent, batch, target_args), _step(twin, batch, plain_args)
+    assert got["losses/actor"] == pytest.approx(expected["losses/actor"], rel=1e-5)
+    assert got["charts/imagined_return"] == pytest.approx(expected["charts/imagined_return"], rel=1e-5)
+    assert got["losses/value"] > expected["losses/value"] + 100  # fitted from 50 away
+    assert all(torch.equal(v, copy[k]) for k, v in agent.value_target.state_dict().items())  # no gradient step
+    rd.sync_slow_target(agent, updates=150, every=100)  # not a multiple: nothing moves
+    assert all(torch.equal(v, copy[k]) for k, v in agent.value_target.state_dict().items())
+    rd.sync_slow_target(agent, updates=200, every=100)
+    for k, v in agent.value_target.state_dict().items():
+        assert torch.equal(v, agent.value.state_dict()[k])
+    assert rd.Agent((5,), 2, plain_args).value_target is None  # off by default: Dreamer v1
+
+
+def test_imagination_diagnostics_hand_case():
+    actor = rd.Actor(feat_size=6, action_size=2, units=8, init_std=5.0, min_std=1e-4)
+    with torch.no_grad():  # a zero output layer: pre-tanh std softplus(softplus^-1(5)) + 1e-4
+        actor.net.out.weight.zero_()
+        actor.net.out.bias.zero_()
+    start = {"stoch": torch.zeros(3, 2), "deter": torch.zeros(3, 4)}
+    reward = torch.tensor([[1.0, 3.0], [2.0, 6.0]])  # (H=2, N=2)
+    value = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
+    actions = torch.tensor([[[0.995, 0.2], [-1.0, 0.0]], [[0.5, 0.5], [0.1, -0.2]]])  # (H, N, A): 2 of 8 saturated
+    got = {k: float(v) for k, v in rd.imagination_diagnostics(actor, start, actions, reward, value).items()}
+    assert got == pytest.approx({"imagine/reward_mean": 3.0, "imagine/reward_max": 6.0, "imagine/value_first": 1.5,
+                                 "imagine/value_last": 3.5, "imagine/actor_std": 5.0001,
+                                 "imagine/saturated_actions": 0.25}, rel=1e-5)
+
+
+def test_defaults_keep_dreamer_v1():
+    for module in (rd, rmw):
+        args = module.Args()
+        assert not args.slow_target and args.slow_target_every == 100 and args.reward_scale == 1.0
+
+
+@pytest.mark.slow
+def test_metaworld_run_with_both_guards_logs_raw_returns(tmp_path):
+    """A few-step run with both guards: episodes on disk and the logged returns keep the raw rewards, and every round
+    logs the diagnostics."""
+    run_script("rama_metaworld.py", "--env-id", "metaworld/drawer-close", "--obs-type", "state", "--slow-target",
+               "--slow-target-every", "2", "--reward-scale", "0.1", "--run-dir", str(tmp_path), *TINY)
+    (run_path,) = glob.glob(os.path.join(tmp_path, "*"))
+    with open(os.path.join(run_path, "metrics.jsonl")) as f:
+        rows = [json.loads(line) for line in f]
+    logged = [r["charts/episodic_return"] for r in rows if "charts/episodic_return" in r]
+    stored = [float(np.load(p)["reward"].sum()) for p in sorted(glob.glob(os.path.join(run_path, "episodes", "*.npz")))]
+    assert logged == pytest.approx(stored, rel=1e-4) and max(stored) > 0
+    update_rows = [r for r in rows if "losses/value" in r]
+    assert update_rows and all({"imagine/reward_max", "imagine/value_first", "imagine/value_last",
+                                "imagine/actor_std", "imagine/saturated_actions"} <= set(r) for r in update_rows)
