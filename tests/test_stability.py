@@ -102,3 +102,27 @@ def test_metaworld_run_with_both_guards_logs_raw_returns(tmp_path):
     update_rows = [r for r in rows if "losses/value" in r]
     assert update_rows and all({"imagine/reward_max", "imagine/value_first", "imagine/value_last",
                                 "imagine/actor_std", "imagine/saturated_actions"} <= set(r) for r in update_rows)
+
+
+def test_critic_check_by_hand(tmp_path):
+    """tools/critic_check.py on a made-up run: repeat 2, scale 0.1, γ 0.99 -> one step pays at most 2, the bound
+    is 200. Values at the first imagined step 100, 300, 250, 150: peak 1.5, second half (250, 150) 1.0. Success
+    0, 1, 0, 1, 1: one failure after the first success; the last 10 (all 5) solved 3 of 5."""
+    import sys
+
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools"))
+    import critic_check
+
+    run = tmp_path / "exp" / "cell__dreamer__s1"
+    run.mkdir(parents=True)
+    (run / "args.json").write_text(json.dumps({"action_repeat": 2, "reward_scale": 0.1, "gamma": 0.99}))
+    rows = [{"step": 500 * i, "imagine/value_first": v, "imagine/reward_max": m, "losses/actor_grad_norm": g}
+            for i, (v, m, g) in enumerate([(100, 2.0, 1), (300, 3.0, 50), (250, 2.5, 2), (150, 1.0, 3)])]
+    rows += [{"step": 500 * i, "charts/success_rate": s} for i, s in enumerate([0, 1, 0, 1, 1])]
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    got = critic_check.check_run(str(run))
+    assert got["bound"] == pytest.approx(200.0)
+    assert got["value"] == pytest.approx(1.5) and got["late"] == pytest.approx(1.0)
+    assert got["reward"] == pytest.approx(1.5) and got["grad"] == 50
+    assert (got["failed"], got["episodes"], got["last10"]) == (1, 5, pytest.approx(0.6))
+    assert "| cell__dreamer__s1 | 200 | 1.50 | 1.00 | 1.50 | 50 | 1 of 5 | 0.6 |" in critic_check.table([got])
