@@ -8,6 +8,8 @@ one step pays, the actor's peak gradient norm, the episodes that failed after th
 success, and the success rate of the last 10 episodes.
 
     python tools/critic_check.py results/metaworld_drawer_close      # -> results/metaworld_drawer_close/critic.md
+    python tools/critic_check.py results/metaworld_drawer_close --plot baseline__dreamer__s1 slow_target__dreamer__s1 \
+        reward_scale__dreamer__s1                                    # and critic.png: these runs' curves
 """
 import argparse
 import glob
@@ -40,6 +42,37 @@ def check_run(folder: str) -> dict:
             "last10": sum(last) / max(len(last), 1)}
 
 
+def plot(folders: list, out: str):
+    """Per run, against env steps: the value at the first imagined step over its bound, the actor's gradient norm
+    (log scale), the actor's std, and the training return."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("value at the first imagined step / bound", "imagine/value_first"),
+              ("actor gradient norm", "losses/actor_grad_norm"), ("actor std", "imagine/actor_std"),
+              ("training return", "charts/episodic_return")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4))
+    for folder in folders:
+        bound = check_run(folder)["bound"]
+        with open(os.path.join(folder, "metrics.jsonl")) as f:
+            rows = [json.loads(line) for line in f]
+        for ax, (title, key) in zip(axes, panels):
+            points = [(r["step"], r[key] / (bound if key == "imagine/value_first" else 1)) for r in rows if key in r]
+            ax.plot(*zip(*points), label=os.path.basename(folder), lw=1.3)
+    for ax, (title, key) in zip(axes, panels):
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("environment steps")
+        ax.grid(alpha=0.3)
+    axes[0].axhline(1.0, color="k", ls=":", lw=1)
+    axes[1].set_yscale("log")
+    axes[-1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    print(f"wrote {out}")
+
+
 def table(rows: list) -> str:
     lines = ["| run | bound | value / bound: peak | second half | peak reward / max | peak actor grad norm | "
              "failed after first success | last 10 solved |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -54,6 +87,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("experiment", help="an experiment folder of results/ (one folder per run)")
     parser.add_argument("--out", default=None, help="the markdown table (default: <experiment>/critic.md)")
+    parser.add_argument("--plot", nargs="+", default=None, metavar="RUN",
+                        help="also draw these runs (folder names inside the experiment) into <experiment>/critic.png")
     cli = parser.parse_args()
     folders = sorted(os.path.dirname(p) for p in glob.glob(os.path.join(cli.experiment, "*", "metrics.jsonl")))
     if not folders:
@@ -63,6 +98,11 @@ def main():
     with open(out, "w") as f:
         f.write(text)
     print(text + f"wrote {out}")
+    if cli.plot:
+        missing = [r for r in cli.plot if not os.path.isfile(os.path.join(cli.experiment, r, "metrics.jsonl"))]
+        if missing:
+            parser.error(f"--plot: no such run in {cli.experiment}: {', '.join(missing)}")
+        plot([os.path.join(cli.experiment, r) for r in cli.plot], os.path.join(cli.experiment, "critic.png"))
 
 
 if __name__ == "__main__":
