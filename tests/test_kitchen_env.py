@@ -204,3 +204,19 @@ def test_gymnasium_make(env_id):
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
     assert env.render().shape == (64, 96, 3)
     env.close()
+
+
+@pytest.mark.slow
+def test_precheck_tool_writes_a_row_per_start_and_policy(tmp_path):
+    """tools/kitchen_precheck.py, one episode each: a summary row for both starts and both policies."""
+    import json
+
+    out = tmp_path / "precheck.json"
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "tools", "kitchen_precheck.py"), "--episodes", "1",
+                           "--out", str(out)], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(out.read_text())
+    assert set(summary) == {"fixed/dreamer-init", "fixed/uniform", "random/dreamer-init", "random/uniform"}
+    for row in summary.values():
+        assert row["episodes"] == 1 and row["min_return"] <= row["mean_return"] <= row["max_return"]
+        assert row["any_positive_reward"] in (0.0, 1.0) and row["object_moved"] in (0.0, 1.0)

@@ -107,7 +107,8 @@ def test_metaworld_run_with_both_guards_logs_raw_returns(tmp_path):
 def test_critic_check_by_hand(tmp_path):
     """tools/critic_check.py on a made-up run: repeat 2, scale 0.1, γ 0.99 -> one step pays at most 2, the bound
     is 200. Values at the first imagined step 100, 300, 250, 150: peak 1.5, second half (250, 150) 1.0. Success
-    0, 1, 0, 1, 1: one failure after the first success; the last 10 (all 5) solved 3 of 5."""
+    0, 1, 0, 1, 1 after one prefill episode: the agent's 4 have one failure after the first success; the last 10
+    (all 5) solved 3 of 5."""
     import sys
 
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools"))
@@ -124,5 +125,5 @@ def test_critic_check_by_hand(tmp_path):
     assert got["bound"] == pytest.approx(200.0)
     assert got["value"] == pytest.approx(1.5) and got["late"] == pytest.approx(1.0)
     assert got["reward"] == pytest.approx(1.5) and got["grad"] == 50
-    assert (got["failed"], got["episodes"], got["last10"]) == (1, 5, pytest.approx(0.6))
-    assert "| cell__dreamer__s1 | 200 | 1.50 | 1.00 | 1.50 | 50 | 1 of 5 | 0.6 |" in critic_check.table([got])
+    assert (got["failed"], got["episodes"], got["last10"]) == (1, 4, pytest.approx(0.6))
+    assert "| cell__dreamer__s1 | 200 | 1.50 | 1.00 | 1.50 | 50 | 1 of 4 | 0.6 |" in critic_check.table([got])

@@ -4,11 +4,11 @@ Meta-World pays at most 10 per env step, so no discounted return can pass 10 · 
 action repeat 2, reward scale 1, γ 0.99). From each run's metrics.jsonl (the imagine/* diagnostics of
 rama_metaworld.py, in the units the agent learns) this tabulates the value at the first imagined step against that
 bound (its peak, and its mean over the second half of the run's updates), the peak imagined reward against the most
-one step pays, the actor's peak gradient norm, the episodes that failed after the first
-success, and the success rate of the last 10 episodes.
+one step pays, the actor's peak gradient norm, how many of the agent's episodes (after the random prefill) failed after
+its first success, and the success rate of the last 10 episodes.
 
     python tools/critic_check.py results/metaworld_drawer_close      # -> results/metaworld_drawer_close/critic.md
-    python tools/critic_check.py results/metaworld_drawer_close --plot baseline__dreamer__s1 slow_target__dreamer__s1 \
+    python tools/critic_check.py results/metaworld_drawer_close --plot baseline__dreamer__s1 slow_target__dreamer__s1 \\
         reward_scale__dreamer__s1                                    # and critic.png: these runs' curves
 """
 import argparse
@@ -30,7 +30,8 @@ def check_run(folder: str) -> dict:
     updates = [r for r in rows if "imagine/value_first" in r]
     episodes = [r for r in rows if "charts/success_rate" in r]
     solved = [r["charts/success_rate"] > 0 for r in episodes]
-    first = solved.index(True) if any(solved) else len(solved)
+    acted = solved[args.get("prefill_episodes", 1):]  # the agent's own episodes: the prefill acts at random
+    first = acted.index(True) if any(acted) else len(acted)
     last = solved[-10:]
     return {"run": os.path.basename(folder), "bound": bound,
             "value": max(r["imagine/value_first"] for r in updates) / bound if updates else float("nan"),
@@ -38,7 +39,7 @@ def check_run(folder: str) -> dict:
             / max(len(updates) - len(updates) // 2, 1),
             "reward": max(r["imagine/reward_max"] for r in updates) / step_max if updates else float("nan"),
             "grad": max(r["losses/actor_grad_norm"] for r in updates) if updates else float("nan"),
-            "failed": sum(not s for s in solved[first:]), "episodes": len(solved),
+            "failed": sum(not s for s in acted[first:]), "episodes": len(acted), "solved": any(acted),
             "last10": sum(last) / max(len(last), 1)}
 
 
@@ -75,11 +76,12 @@ def plot(folders: list, out: str):
 
 def table(rows: list) -> str:
     lines = ["| run | bound | value / bound: peak | second half | peak reward / max | peak actor grad norm | "
-             "failed after first success | last 10 solved |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "agent's episodes failed after its first success | last 10 solved |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
+        failed = f"{r['failed']} of {r['episodes']}" if r["solved"] else "never solved"
         lines.append(f"| {r['run']} | {r['bound']:,.0f} | {r['value']:.2f} | {r['late']:.2f} | {r['reward']:.2f} | "
-                     f"{r['grad']:.0f} | "
-                     f"{r['failed']} of {r['episodes']} | {r['last10']:.1f} |")
+                     f"{r['grad']:.0f} | {failed} | {r['last10']:.1f} |")
     return "\n".join(lines) + "\n"
 
 

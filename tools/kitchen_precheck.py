@@ -66,8 +66,9 @@ def main():
                    "mean_return": float(returns.mean()), "min_return": float(returns.min()),
                    "max_return": float(returns.max()), "positive_return": float(np.mean(returns > 0.5))}
             summary[f"{start}/{policy}"] = row
-            print(f"{start:6s} {policy:12s} any r>0 {row['any_positive_reward']:.2f} | moved {row['object_moved']:.2f} | "
-                  f"return {row['mean_return']:+.2f} [{row['min_return']:+.1f}, {row['max_return']:+.1f}] | "
+            print(f"{start:6s} {policy:12s} any r>0 {row['any_positive_reward']:.2f} | "
+                  f"moved {row['object_moved']:.2f} | return {row['mean_return']:+.2f} "
+                  f"[{row['min_return']:+.1f}, {row['max_return']:+.1f}] | "
                   f"return > 0.5: {row['positive_return']:.2f} | {time.time() - t0:.0f} s", flush=True)
     os.makedirs(os.path.dirname(cli.out) or ".", exist_ok=True)
     with open(cli.out, "w") as f:
