@@ -242,14 +242,17 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
                   for r in load_experiment(other, key)]
         runs += [r for r in joined if r["task"] in tasks]
     methods = method_order({r["method"] for r in runs})
-    for name, named in (("--methods", only_methods), ("--against", against)):
-        missing = [m for m in named if m not in methods]  # --against among the rows --methods keeps
+    def refuse_missing(flag: str, named: tuple):
+        missing = [m for m in named if m not in methods]
         if missing:
-            sys.exit(f"error: {name} {' '.join(missing)}: no such method in {folder} (there: {', '.join(methods)})")
-        if name == "--methods" and only_methods:  # the tables' rows and the curves' lines only, in the paper's order
-            runs = [r for r in runs if r["method"] in only_methods]
-            methods = [m for m in methods if m in only_methods]
-            tasks = [t for t in tasks if any(r["task"] == t for r in runs)]
+            sys.exit(f"error: {flag} {' '.join(missing)}: no such method in {folder} (there: {', '.join(methods)})")
+
+    refuse_missing("--methods", only_methods)
+    if only_methods:  # the tables' rows and the curves' lines only, in the paper's order
+        runs = [r for r in runs if r["method"] in only_methods]
+        methods = [m for m in methods if m in only_methods]
+        tasks = [t for t in tasks if any(r["task"] == t for r in runs)]
+    refuse_missing("--against", against)  # among the rows --methods keeps
     note = " (the paper's metric)" if key == "charts/episodic_return" else ""
     header = ["method"] + [f"{t}: {h}" for t in tasks for h in ("mean ± s.e. (seeds)", "IQM [95% CI]")]
     lines = [f"# {experiment}", "",

@@ -19,14 +19,19 @@ import os
 MAX_REWARD_PER_ENV_STEP = 10.0  # Meta-World v3's reward range is [0, 10]
 
 
-def check_run(folder: str) -> dict:
+def read_run(folder: str):
+    """A run's args.json and its metrics.jsonl rows, and its bound: the most one agent step pays and the most any
+    discounted return can reach."""
     with open(os.path.join(folder, "args.json")) as f:
         args = json.load(f)
     with open(os.path.join(folder, "metrics.jsonl")) as f:
         rows = [json.loads(line) for line in f]
-    scale = args.get("reward_scale", 1.0)
-    step_max = MAX_REWARD_PER_ENV_STEP * args["action_repeat"] * scale  # the most one agent step can pay
-    bound = step_max / (1 - args["gamma"])
+    step_max = MAX_REWARD_PER_ENV_STEP * args["action_repeat"] * args.get("reward_scale", 1.0)
+    return args, rows, step_max, step_max / (1 - args["gamma"])
+
+
+def check_run(folder: str) -> dict:
+    args, rows, step_max, bound = read_run(folder)
     updates = [r for r in rows if "imagine/value_first" in r]
     episodes = [r for r in rows if "charts/success_rate" in r]
     solved = [r["charts/success_rate"] > 0 for r in episodes]
@@ -56,9 +61,7 @@ def plot(folders: list, out: str):
               ("training return", "charts/episodic_return")]
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4))
     for folder in folders:
-        bound = check_run(folder)["bound"]
-        with open(os.path.join(folder, "metrics.jsonl")) as f:
-            rows = [json.loads(line) for line in f]
+        _, rows, _, bound = read_run(folder)
         for ax, (title, key) in zip(axes, panels):
             points = [(r["step"], r[key] / (bound if key == "imagine/value_first" else 1)) for r in rows if key in r]
             ax.plot(*zip(*points), label=os.path.basename(folder), lw=1.3)
