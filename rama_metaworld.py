@@ -178,6 +178,9 @@ class Args:
     """λ of the λ-returns"""
     expl_noise: float = 0.3
     """std of the Gaussian noise added to actions while collecting"""
+    actor_dist: Literal["tanh_normal", "trunc_normal"] = "tanh_normal"
+    """the actor's distribution: Dreamer v1's tanh of a Gaussian, or the authors' DreamerV2 actor (a Gaussian with
+    mean tanh(x) and std 2 sigmoid(x / 2) + --actor-min-std, truncated to [-1, 1]; they use --actor-min-std 0.1)"""
     actor_init_std: float = 5.0
     """the actor's std before training (tanh-normal)"""
     actor_min_std: float = 1e-4
@@ -1059,21 +1062,32 @@ class WorldModel(nn.Module):
 
 
 class Actor(nn.Module):
-    """Tanh-normal policy over features: (..., F) -> a distribution over actions in [-1, 1]^A."""
+    """Tanh-normal (or truncated-normal) policy over features: (..., F) -> a distribution over actions in [-1, 1]^A."""
 
-    def __init__(self, feat_size, action_size, units, init_std=5.0, min_std=1e-4, mean_scale=5.0):
+    def __init__(self, feat_size, action_size, units, init_std=5.0, min_std=1e-4, mean_scale=5.0,
+                 dist: str = "tanh_normal"):
         super().__init__()
         self.net = MLP(feat_size, units, 4, 2 * action_size)
         self.action_size = action_size
-        self.init_std, self.min_std, self.mean_scale = init_std, min_std, mean_scale
+        self.init_std, self.min_std, self.mean_scale, self.dist = init_std, min_std, mean_scale, dist
 
     def forward(self, feat):
+        if self.dist == "trunc_normal":  # docs/deviations.md#actor-dist
+            mean, std = self.net(feat).float().chunk(2, -1)  # (..., A) each
+            return td.Independent(TruncatedNormal(torch.tanh(mean), 2 * torch.sigmoid(std / 2) + self.min_std), 1)
         return tanh_normal(self.net(feat), self.init_std, self.min_std, self.mean_scale)
+
+    def std(self, feat):
+        """(N, F) -> (N, A): the Gaussian's std, before the tanh or the truncation."""
+        dist = self(feat).base_dist
+        return dist.scale if self.dist == "trunc_normal" else dist.base_dist.scale
 
     def mode(self, feat, rule: str = "sample-mode", samples: int = 100):
         """The action used in evaluation, feat (N, F) -> (N, A): Dreamer v1's mode estimate, the most likely of 100
         samples (--eval-action sample-mode: with the initial std of 5 that is a nearly saturated action), or the tanh
         of the Gaussian mean (--eval-action mean)."""
+        if self.dist == "trunc_normal":  # its mode is its mean before the truncation (the authors' actor.mode())
+            return torch.tanh(self.net(feat).float().chunk(2, -1)[0])
         if rule == "mean":
             mean = self.net(feat).chunk(2, -1)[0]
             return torch.tanh(self.mean_scale * torch.tanh(mean / self.mean_scale))
@@ -1090,6 +1104,29 @@ def tanh_normal(out, init_std, min_std, mean_scale):
     std = F.softplus(std + np.log(np.expm1(init_std))) + min_std
     dist = td.TransformedDistribution(td.Normal(mean, std), [td.TanhTransform(cache_size=1)])
     return td.Independent(dist, 1)
+
+
+class TruncatedNormal(td.Distribution):
+    """N(loc, scale) restricted to [-1, 1], elementwise (the authors' `TruncNormalDist`, common/dists.py). Samples
+    invert the CDF, so gradients reach loc and scale; they are clipped 1e-6 inside the bounds with a straight-through
+    gradient, as theirs. loc in (-1, 1) keeps 0.5 inside [cdf(-1), cdf(1)], so the inversion never degenerates."""
+    arg_constraints, has_rsample, clip = {}, True, 1e-6
+
+    def __init__(self, loc, scale):
+        self.loc, self.scale = loc, scale
+        self.cdf_low = torch.special.ndtr((-1 - loc) / scale)
+        self.cdf_high = torch.special.ndtr((1 - loc) / scale)
+        super().__init__(loc.shape, validate_args=False)
+
+    def rsample(self, sample_shape=torch.Size()):
+        uniform = torch.rand(self._extended_shape(sample_shape), device=self.loc.device)
+        u = (self.cdf_low + uniform * (self.cdf_high - self.cdf_low)).clamp(1e-6, 1 - 1e-6)
+        x = self.loc + self.scale * torch.special.ndtri(u)
+        return x + (x.clamp(-1 + self.clip, 1 - self.clip) - x).detach()
+
+    def log_prob(self, x):
+        z = (x - self.loc) / self.scale
+        return -0.5 * z ** 2 - 0.5 * np.log(2 * np.pi) - self.scale.log() - (self.cdf_high - self.cdf_low).log()
 
 
 # ALGO LOGIC: addressing
@@ -1230,7 +1267,7 @@ class Agent(nn.Module):
         self.wm = WorldModel(obs_shape, action_size, args)
         feat = self.wm.rssm.feat_size
         self.actor = Actor(feat, action_size, args.mlp_units, args.actor_init_std, args.actor_min_std,
-                           args.actor_mean_scale)
+                           args.actor_mean_scale, args.actor_dist)
         self.value = MLP(feat, args.mlp_units, 3, 1)
         set_speed_options(init_weights(self, args.init), args.precision, args.channels_last)
         # --slow-target: the λ-returns bootstrap from a copy that only sync_slow_target moves (DreamerV2; not in v1)
@@ -1296,7 +1333,7 @@ def imagination_diagnostics(actor: Actor, start: dict, actions, reward, value) -
     value (H, N) at the first and last imagined steps, the actor's std at the start states and how many of the
     imagined actions (H, N, A) sit at the tanh's edges. A round's log averages them over its updates."""
     with torch.no_grad():
-        std = actor(RSSM.feat(start)).base_dist.base_dist.scale  # (N, A): the Gaussian's before the tanh
+        std = actor.std(RSSM.feat(start))  # (N, A): the Gaussian's before the tanh or the truncation
         return {"imagine/reward_mean": reward.mean(), "imagine/reward_max": reward.max(),
                 "imagine/value_first": value[0].mean(), "imagine/value_last": value[-1].mean(),
                 "imagine/actor_std": std.mean(), "imagine/saturated_actions": (actions.abs() > 0.99).float().mean()}

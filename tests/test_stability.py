@@ -127,3 +127,67 @@ def test_critic_check_by_hand(tmp_path):
     assert got["reward"] == pytest.approx(1.5) and got["grad"] == 50
     assert (got["failed"], got["episodes"], got["last10"]) == (1, 4, pytest.approx(0.6))
     assert "| cell__dreamer__s1 | 200 | 1.50 | 1.00 | 1.50 | 50 | 1 of 4 | 0.6 |" in critic_check.table([got])
+
+
+def test_truncated_normal_log_prob_hand_case():
+    """log p(x) = log φ(z) − log σ − log(Φ(β) − Φ(α)); at loc 0, σ 1, x 0: −½ ln 2π − ln(Φ(1) − Φ(−1)) =
+    −0.918939 − ln 0.682689 = −0.537223. Equal in both scripts."""
+    for module in (rd, rmw):
+        dist = module.TruncatedNormal(torch.tensor([0.0, 0.5]), torch.tensor([1.0, 0.1]))
+        log_p = dist.log_prob(torch.tensor([0.0, 0.5]))
+        assert log_p[0].item() == pytest.approx(-0.537223, abs=1e-5)
+        # σ 0.1 at the centre, bounds 5 and 15 σ away: the untruncated density, −0.918939 − ln 0.1 = 1.383646
+        assert log_p[1].item() == pytest.approx(1.383646, abs=1e-4)
+
+
+def test_truncated_normal_samples_stay_in_bounds_with_the_truncated_mean():
+    """Samples lie in [−1 + 1e-6, 1 − 1e-6], and their mean is the truncated mean: loc 0.9, σ 0.5 gives
+    0.9 + 0.5 (φ(−3.8) − φ(0.2)) / (Φ(0.2) − Φ(−3.8)) = 0.9 + 0.5 (0.000292 − 0.391043) / (0.579260 − 0.000072) = 0.562674."""
+    torch.manual_seed(0)
+    dist = rmw.TruncatedNormal(torch.full((200_000,), 0.9), torch.full((200_000,), 0.5))
+    sample = dist.sample()
+    assert sample.min() >= -1 + 1e-6 - 1e-7 and sample.max() <= 1 - 1e-6 + 1e-7
+    assert sample.mean().item() == pytest.approx(0.562674, abs=3e-3)
+
+
+def test_truncated_normal_rsample_gradient_is_the_inverse_cdf_derivative():
+    """The same uniform draw (the same seed) at loc and loc + h: the finite difference of the samples equals the
+    autograd gradient, so the actor gets the gradient of the return through its truncated samples."""
+    loc, scale, h = torch.tensor([0.3, -0.8], requires_grad=True), torch.tensor([0.4, 0.2]), 1e-3
+    torch.manual_seed(5)
+    sample = rmw.TruncatedNormal(loc, scale).rsample()
+    sample.sum().backward()
+    with torch.no_grad():
+        torch.manual_seed(5)
+        up = rmw.TruncatedNormal(loc + h, scale).rsample()
+        torch.manual_seed(5)
+        down = rmw.TruncatedNormal(loc - h, scale).rsample()
+    assert loc.grad.numpy() == pytest.approx(((up - down) / (2 * h)).numpy(), rel=1e-2)
+    assert (loc.grad > 0).all()
+
+
+def test_trunc_normal_actor_mode_std_and_default():
+    """--actor-dist trunc_normal: the mode is tanh of the mean output, the std 2 sigmoid(x / 2) + min in (min, 2 + min);
+    Dreamer v1's tanh-normal stays the default in both scripts."""
+    torch.manual_seed(0)
+    actor = rmw.Actor(6, 3, 8, min_std=0.1, dist="trunc_normal")
+    feat = torch.randn(4, 6)
+    mean, raw_std = actor.net(feat).chunk(2, -1)
+    assert torch.allclose(actor.mode(feat), torch.tanh(mean))
+    assert torch.allclose(actor.std(feat), 2 * torch.sigmoid(raw_std / 2) + 0.1)
+    assert rd.Args().actor_dist == rmw.Args().actor_dist == "tanh_normal"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script, env", [("rama_dreamer.py", "dmc/cartpole-balance"),
+                                         ("rama_metaworld.py", "metaworld/drawer-close")])
+def test_trunc_normal_actor_runs(tmp_path, script, env):
+    """A few-step run of each script with the authors' actor: the actions it stored stay in [−1, 1] and it logs
+    the actor's std."""
+    run_script(script, "--env-id", env, "--obs-type", "state", "--actor-dist", "trunc_normal", "--actor-min-std",
+               "0.1", "--expl-noise", "0", "--prefill-episodes", "1", "--run-dir", str(tmp_path), *TINY)
+    (run_path,) = glob.glob(os.path.join(tmp_path, "*"))
+    actions = np.concatenate([np.load(p)["action"] for p in glob.glob(os.path.join(run_path, "episodes", "*.npz"))])
+    assert np.abs(actions).max() <= 1.0
+    with open(os.path.join(run_path, "metrics.jsonl")) as f:
+        assert any("imagine/actor_std" in json.loads(line) for line in f)
