@@ -127,6 +127,10 @@ def test_critic_check_by_hand(tmp_path):
     assert got["reward"] == pytest.approx(1.5) and got["grad"] == 50
     assert (got["failed"], got["episodes"], got["last10"]) == (1, 4, pytest.approx(0.6))
     assert "| cell__dreamer__s1 | 200 | 1.50 | 1.00 | 1.50 | 50 | 1 of 4 | 0.6 |" in critic_check.table([got])
+    # the cell's row: a second seed that never solved and one that solved all of its 10 (value peak 0.8, grad 7)
+    never = {**got, "run": "cell__dreamer__s2", "solved": False, "failed": 4, "episodes": 4, "last10": 0.0, "grad": 0}
+    clean = {**got, "run": "cell__dreamer__s3", "failed": 0, "episodes": 9, "last10": 1.0, "value": 0.8, "grad": 7}
+    assert "| cell | 3 | 1 | 1 of 13 | 1 of 3 | 0.80-1.50 | 50 |" in critic_check.cell_table([got, never, clean])
 
 
 def test_truncated_normal_log_prob_hand_case():

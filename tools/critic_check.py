@@ -5,7 +5,7 @@ action repeat 2, reward scale 1, γ 0.99). From each run's metrics.jsonl (the im
 rama_metaworld.py, in the units the agent learns) this tabulates the value at the first imagined step against that
 bound (its peak, and its mean over the second half of the run's updates), the peak imagined reward against the most
 one step pays, the actor's peak gradient norm, how many of the agent's episodes (after the random prefill) failed after
-its first success, and the success rate of the last 10 episodes.
+its first success, and the success rate of the last 10 episodes; above that, one row per cell.
 
     python tools/critic_check.py results/metaworld_drawer_close      # -> results/metaworld_drawer_close/critic.md
     python tools/critic_check.py results/metaworld_drawer_close --plot baseline__dreamer__s1 slow_target__dreamer__s1 \\
@@ -88,6 +88,26 @@ def table(rows: list) -> str:
     return "\n".join(lines) + "\n"
 
 
+def cell_table(rows: list) -> str:
+    """One row per cell (the run name before its first `__`): how many seeds never solved, how many of the agent's
+    episodes failed after a first success (over all seeds), how many seeds solved all of their last 10, and the
+    range of the value's peak over its bound and the largest actor gradient norm."""
+    cells = {}
+    for r in rows:
+        cells.setdefault(r["run"].split("__")[0], []).append(r)
+    lines = ["| cell | seeds | never solved | agent's episodes failed after a first success | seeds solving all of "
+             "their last 10 | value / bound: peak | peak actor grad norm |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for cell, runs in cells.items():
+        found = [r for r in runs if r["solved"]]
+        failed = f"{sum(r['failed'] for r in found)} of {sum(r['episodes'] for r in found)}" if found else "–"
+        values = [r["value"] for r in found]
+        value = f"{min(values):.2f}-{max(values):.2f}" if found else "–"
+        grad = f"{max(r['grad'] for r in runs):.0f}"
+        lines.append(f"| {cell} | {len(runs)} | {len(runs) - len(found)} | {failed} | "
+                     f"{sum(r['last10'] == 1.0 for r in runs)} of {len(runs)} | {value} | {grad} |")
+    return "\n".join(lines) + "\n"
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("experiment", help="an experiment folder of results/ (one folder per run)")
@@ -98,7 +118,8 @@ def main():
     folders = sorted(os.path.dirname(p) for p in glob.glob(os.path.join(cli.experiment, "*", "metrics.jsonl")))
     if not folders:
         parser.error(f"{cli.experiment}: no <run>/metrics.jsonl inside")
-    text = table([check_run(f) for f in folders])
+    checked = [check_run(f) for f in folders]
+    text = cell_table(checked) + "\n" + table(checked)
     out = cli.out or os.path.join(cli.experiment, "critic.md")
     with open(out, "w") as f:
         f.write(text)
