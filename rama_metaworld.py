@@ -120,8 +120,9 @@ class Args:
     the device is CUDA (2.6-6x faster updates on an H100, the same math), off elsewhere; True on a CPU is refused"""
 
     # Environment
-    action_repeat: int = 2
-    """each action is repeated this many environment steps"""
+    action_repeat: int = 1
+    """each action is repeated this many environment steps (Meta-World: the authors' 1, not Dreamer's 2;
+    docs/deviations.md#metaworld-protocol)"""
     time_limit: Optional[int] = None
     """env steps per episode; None = 500 (Meta-World's own limit, also its maximum)"""
     image_size: int = 64
@@ -201,10 +202,10 @@ class Args:
     """n: chunks per batch"""
     seq_len: int = 50
     """L: steps per chunk"""
-    updates_per_episode: int = 100
-    """C: updates between two collected episodes"""
-    prefill_episodes: int = 1
-    """S: random-action episodes collected before training (the paper: 1)"""
+    updates_per_episode: int = 50
+    """C: updates between two collected episodes (Meta-World: the authors' 100 per 1,000 env steps; the paper: 100)"""
+    prefill_episodes: int = 10
+    """S: random-action episodes before training (Meta-World: the authors' 5,000 env steps; the paper: 1)"""
 
     # Addressing (RAMa)
     prior_dirs: Tuple[str, ...] = ()

@@ -4,12 +4,13 @@ import subprocess
 import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# tiny sizes: 50-step episodes (100 env steps with action repeat 2), 3 episodes, 2 updates each, small networks
+# tiny sizes: 100-env-step episodes (50 agent steps at DMC's action repeat 2, 100 at Meta-World's 1), 3 episodes,
+# one of them the random prefill, 2 updates each, small networks
 TINY = ["--total-steps", "300", "--time-limit", "100", "--batch-size", "4", "--seq-len", "8",
-        "--updates-per-episode", "2", "--cnn-depth", "4", "--deter-size", "16", "--stoch-size", "4",
-        "--hidden-size", "16", "--mlp-units", "16", "--horizon", "3", "--eval-every", "200", "--device", "cpu",
-        "--address-units", "16", "--address-cnn-depth", "4", "--address-batch", "5", "--address-plot-every", "2",
-        "--address-prob", "1.0"]
+        "--updates-per-episode", "2", "--prefill-episodes", "1", "--cnn-depth", "4", "--deter-size", "16",
+        "--stoch-size", "4", "--hidden-size", "16", "--mlp-units", "16", "--horizon", "3", "--eval-every", "200",
+        "--device", "cpu", "--address-units", "16", "--address-cnn-depth", "4", "--address-batch", "5",
+        "--address-plot-every", "2", "--address-prob", "1.0"]
 
 
 def run_script(script: str, *flags, check=True, timeout=300):

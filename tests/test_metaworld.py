@@ -185,7 +185,8 @@ def test_expert_prior_episodes_keep_their_task_vector(expert_prior):
     train = task_vectors("push", "train", 1)
     for path in paths:
         with np.load(path) as ep:
-            assert ep["obs"].shape == (51, 64, 64, 3) and ep["action"].shape == (51, 4)
+            # 100 env steps at Meta-World's action repeat 1: 100 agent steps and the first observation
+            assert ep["obs"].shape == (101, 64, 64, 3) and ep["action"].shape == (101, 4)
             assert any(np.allclose(ep["task_vector"], v) for v in train)  # stored for analysis, from the set
             assert ep["success"].dtype == bool and float(ep["return"]) > 100  # the expert pushes
 

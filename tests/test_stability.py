@@ -195,3 +195,12 @@ def test_trunc_normal_actor_runs(tmp_path, script, env):
     assert np.abs(actions).max() <= 1.0
     with open(os.path.join(run_path, "metrics.jsonl")) as f:
         assert any("imagine/actor_std" in json.loads(line) for line in f)
+
+
+def test_metaworld_defaults_are_the_authors_schedule():
+    """Meta-World runs the authors' schedule (docs/deviations.md#metaworld-protocol), with raw rewards; DeepMind
+    Control keeps the paper's: action repeat 2, one prefill episode, C = 100."""
+    metaworld, dmc = rmw.Args(), rd.Args()
+    assert (metaworld.action_repeat, metaworld.prefill_episodes, metaworld.updates_per_episode) == (1, 10, 50)
+    assert (dmc.action_repeat, dmc.prefill_episodes, dmc.updates_per_episode) == (2, 1, 100)
+    assert metaworld.reward_scale == dmc.reward_scale == 1.0 and metaworld.actor_dist == "tanh_normal"
