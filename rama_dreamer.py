@@ -963,7 +963,7 @@ class Actor(nn.Module):
         samples (--eval-action sample-mode: with the initial std of 5 that is a nearly saturated action), or the tanh
         of the Gaussian mean (--eval-action mean)."""
         if self.dist == "trunc_normal":  # its mode is its mean before the truncation (the authors' actor.mode())
-            return torch.tanh(self.net(feat).float().chunk(2, -1)[0])
+            return self(feat).base_dist.loc
         if rule == "mean":
             mean = self.net(feat).chunk(2, -1)[0]
             return torch.tanh(self.mean_scale * torch.tanh(mean / self.mean_scale))

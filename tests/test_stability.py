@@ -189,7 +189,7 @@ def test_trunc_normal_actor_runs(tmp_path, script, env):
     """A few-step run of each script with the authors' actor: the actions it stored stay in [−1, 1] and it logs
     the actor's std."""
     run_script(script, "--env-id", env, "--obs-type", "state", "--actor-dist", "trunc_normal", "--actor-min-std",
-               "0.1", "--expl-noise", "0", "--prefill-episodes", "1", "--run-dir", str(tmp_path), *TINY)
+               "0.1", "--expl-noise", "0", "--run-dir", str(tmp_path), *TINY)
     (run_path,) = glob.glob(os.path.join(tmp_path, "*"))
     actions = np.concatenate([np.load(p)["action"] for p in glob.glob(os.path.join(run_path, "episodes", "*.npz"))])
     assert np.abs(actions).max() <= 1.0

@@ -20,8 +20,8 @@ import rama_metaworld  # noqa: E402
 
 # the cells of sweeps/families_state.toml: (cell, script module, env id, its other flags)
 FAMILIES = [("kitchen_bluebox", rama_dreamer, "kitchen/bluebox", {}),
-            ("metaworld_drawer_close", rama_metaworld, "metaworld/drawer-close", {"task_set": "new",
-                                                                              "action_repeat": 2}),
+            ("metaworld_drawer_close", rama_metaworld, "metaworld/drawer-close",
+             {"task_set": "new", "action_repeat": 2}),
             ("metaworld_push", rama_metaworld, "metaworld/push", {"task_set": "new", "action_repeat": 2})]
 
 
