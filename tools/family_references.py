@@ -4,6 +4,8 @@ time limits, Meta-World on the `new` task vectors of seed 1).
 
     python tools/family_references.py                  # -> results/families_state/references.json (and a table)
     python tools/family_references.py --episodes 20 --out /tmp/references.json
+    python tools/family_references.py --table2         # Table 2's tasks at the Meta-World default schedule
+                                                       # -> results/metaworld_table2/references.json
 """
 import argparse
 import json
@@ -23,6 +25,9 @@ FAMILIES = [("kitchen_bluebox", rama_dreamer, "kitchen/bluebox", {}),
             ("metaworld_drawer_close", rama_metaworld, "metaworld/drawer-close",
              {"task_set": "new", "action_repeat": 2}),
             ("metaworld_push", rama_metaworld, "metaworld/push", {"task_set": "new", "action_repeat": 2})]
+# sweeps/metaworld_table2.toml's cells (named by task) at rama_metaworld.py's default schedule (action repeat 1)
+TABLE2 = [(name.replace("-", "_"), rama_metaworld, f"metaworld/{name}", {"task_set": "new"})
+          for name in ("push", "dial-turn")]
 
 
 def expert(S, env):
@@ -55,10 +60,13 @@ def score(S, env_id: str, flags: dict, policy: str, episodes: int, seed: int = 1
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=10, help="episodes per policy and family")
-    parser.add_argument("--out", default=os.path.join(ROOT, "results", "families_state", "references.json"))
+    parser.add_argument("--table2", action="store_true", help="score Table 2's tasks (push, dial-turn) instead")
+    parser.add_argument("--out", default=None, help="the JSON to write (default: the chosen set's results folder)")
     cli = parser.parse_args()
+    folder = "metaworld_table2" if cli.table2 else "families_state"
+    cli.out = cli.out or os.path.join(ROOT, "results", folder, "references.json")
     table = {cell: {policy: score(S, env_id, flags, policy, cli.episodes) for policy in ("random", "expert")}
-             for cell, S, env_id, flags in FAMILIES}
+             for cell, S, env_id, flags in (TABLE2 if cli.table2 else FAMILIES)}
     os.makedirs(os.path.dirname(cli.out), exist_ok=True)
     with open(cli.out, "w") as f:
         json.dump(table, f, indent=2)
