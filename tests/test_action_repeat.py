@@ -1,6 +1,7 @@
 """One action-repeat wrapper for every family (DMC, the kitchen, Meta-World), with one time-limit rule: an episode is
 truncated once it has taken --time-limit env steps, so it lasts ceil(time_limit / repeat) agent steps."""
 import inspect
+import os
 
 import gymnasium
 import numpy as np
@@ -145,6 +146,20 @@ def test_family_references_score_the_random_policy_and_the_expert():
     drawer = score(rm, "metaworld/drawer-close", {"task_set": "new"}, "expert", episodes=1)
     assert drawer["success_rate"] == 1.0 and drawer["episodes"] == 1
 
+
+
+def test_table2_levels_are_keyed_by_the_sweeps_cells():
+    """report.py --levels matches a level to a run by its cell's name: --table2's keys are cells of the Table 2 sweep,
+    each at the script's default schedule (no action repeat of its own) on the `new` vectors, the env its cell runs."""
+    import tomllib
+
+    from tools.family_references import TABLE2
+
+    with open(os.path.join(os.path.dirname(__file__), "..", "sweeps", "metaworld_table2.toml"), "rb") as f:
+        cells = tomllib.load(f)["cells"]
+    for cell, module, env_id, flags in TABLE2:
+        assert module is rm and cell in cells and flags == {"task_set": "new"}
+        assert env_id in cells[cell]["flags"] or env_id == "metaworld/push"  # push is the spec's common env
 
 @pytest.mark.slow
 def test_eval_actions_scores_a_checkpoint_with_each_evaluation_action(tmp_path):
