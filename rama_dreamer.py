@@ -21,6 +21,7 @@ Run:
         --seq-len 8 --updates-per-episode 2 --cnn-depth 4 --deter-size 16 --stoch-size 4 --hidden-size 16 \
         --mlp-units 16 --horizon 3                                         # tiny smoke run (seconds)
     python benchmarks/bench_update.py                                     # seconds per update, every method
+    python rama_dreamer.py --env-id kitchen/bluebox --collect-expert 50 --collect-random 50  # a kitchen M
     python rama_dreamer.py --resume runs/<run>                            # continue a killed run
 """
 
@@ -130,6 +131,10 @@ class Args:
     kitchen_start: Literal["fixed", "random"] = "fixed"
     """the kitchen object's start, 50 cm from the zone: one spot with yaw 0 (the paper's "initial object position")
     or a random spot on that circle with a random yaw (docs/deviations.md#kitchen-start)"""
+    collect_expert: int = 0
+    """write this many episodes of the kitchen's scripted pusher to the run folder and exit (a fast prior buffer)"""
+    collect_random: int = 0
+    """with --collect-expert: this many uniform-random-action episodes after them (a learning run's M holds both)"""
 
     # World model
     deter_size: int = 200
@@ -303,7 +308,7 @@ def check_args(args: Args) -> None:
     for name in positive + ["obs_std", "address_adam_eps"]:  # the last two may be None (a default)
         if getattr(args, name) is not None and not getattr(args, name) > 0:  # `not >`: NaN is refused too
             raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
-    for name in ["eval_episodes", "address_imagine_starts", "log_interval_seconds"]:
+    for name in ["eval_episodes", "address_imagine_starts", "log_interval_seconds", "collect_expert", "collect_random"]:
         if not getattr(args, name) >= 0:  # NaN is refused too
             raise UsageError(f"{flag(name)} must be >= 0 (got {getattr(args, name)})")
     if not 0.0 <= args.address_weight_decay < 1.0:
@@ -320,6 +325,10 @@ def check_args(args: Args) -> None:
         raise UsageError(f"--image-size must be >= 46 for the four stride-2 convs (got {args.image_size})")
     if not task_list(args):
         raise UsageError("--task-sequence names no task")
+    if args.collect_expert and not args.env_id.startswith("kitchen/"):
+        raise UsageError(f"--collect-expert: only the kitchen has a scripted expert (--env-id is {args.env_id})")
+    if args.collect_random and not args.collect_expert:
+        raise UsageError("--collect-random needs --collect-expert (the random episodes follow the expert's)")
     if args.track and importlib.util.find_spec("wandb") is None:
         raise UsageError("--track needs wandb: pip install wandb")
     if episode_agent_steps(args) < args.seq_len:
@@ -521,6 +530,38 @@ def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
     else:
         env = DMCEnv(env_id, seed, args.obs_type, args.image_size, args.camera)
     return ActionRepeat(env, args.action_repeat, args.time_limit)
+
+
+def collect_expert_episodes(args: Args, run_path: str):
+    """A fast prior buffer for the kitchen: episodes of its scripted pusher, its actions plus the agent's
+    exploration noise (--expl-noise: from the fixed start they would all be the same episode), then --collect-random
+    episodes of uniform random actions (the prefill's policy), then exit. Episode k's seed and action stream depend
+    on k only, so an interrupted collection resumes where it stopped."""
+    from tqdm import tqdm
+
+    from kitchen_env import scripted_action
+
+    envs = make_envs(args, args.env_id, args.seed, 1)
+    env = envs.envs[0].unwrapped
+    action_size = envs.single_action_space.shape[0]
+    episode_dir = os.path.join(run_path, "episodes")
+    os.makedirs(episode_dir, exist_ok=True)
+    total = args.collect_expert + args.collect_random
+    try:
+        for index in tqdm(range(len(list_episode_files(episode_dir)), total), desc="prior episodes"):
+            rng = np.random.default_rng([args.seed, index])
+
+            def expert(obs):  # (1, A): the pusher's action plus exploration noise
+                noisy = scripted_action(env) + args.expl_noise * rng.standard_normal(action_size)
+                return np.clip(noisy, -1, 1).astype(np.float32)[None]
+
+            uniform = lambda o: rng.uniform(-1, 1, (1, action_size)).astype(np.float32)  # noqa: E731
+            episode = run_episodes(envs, expert if index < args.collect_expert else uniform,
+                                   [args.seed * 1_000_003 + index], make_env_spec(args.env_id)["name"])[0][0]
+            save_episode(episode_dir, index, episode)
+    finally:
+        envs.close()
+    print(f"wrote {args.collect_expert} expert and {args.collect_random} random episodes to {episode_dir}", flush=True)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -2249,6 +2290,8 @@ def main(args: Args, given: frozenset = frozenset()):
     STOP["run_path"] = run_path
     signal.signal(signal.SIGINT, request_stop)
     signal.signal(signal.SIGTERM, request_stop)
+    if args.collect_expert:
+        return collect_expert_episodes(args, run_path)
     addressing = None
     if args.method in ADDRESSED_METHODS:
         addressing = Addressing(obs_shape, action_size, args, device)

@@ -177,6 +177,27 @@ def test_tiny_run_on_the_kitchen(tmp_path, task, start):
     assert {"losses/world_model", "charts/success_rate", "eval/success_rate"} <= keys
 
 
+@pytest.mark.slow
+def test_kitchen_prior_of_pusher_and_random_episodes_feeds_a_uniform_run(tmp_path):
+    """--collect-expert 2 --collect-random 1 from the fixed start: two noisy-pusher episodes that push the box most
+    of the 50 cm (different episodes: the noise), one random episode that barely moves it; then a run reads them."""
+    prior = tmp_path / "prior"
+    run("--env-id", "kitchen/bluebox", "--obs-type", "state", "--collect-expert", "2", "--collect-random", "1",
+        "--run-dir", str(prior))
+    episodes = [dict(np.load(p)) for p in sorted(glob.glob(os.path.join(only_run(prior), "episodes", "*.npz")))]
+    assert len(episodes) == 3 and all(str(ep["task"]) == "bluebox" for ep in episodes)
+    assert [ep["obs"].shape for ep in episodes] == [(251, 23)] * 3  # 500 env steps at action repeat 2
+    assert all(float(ep["return"]) > 40 for ep in episodes[:2]) and abs(float(episodes[2]["return"])) < 10
+    assert not np.array_equal(episodes[0]["action"], episodes[1]["action"])
+    assert np.abs(episodes[2]["action"]).max() <= 1.0
+    no_horizon = [f for i, f in enumerate(TINY) if "--horizon" not in TINY[max(i - 1, 0):i + 1]]
+    proc = run("--env-id", "kitchen/bluebox", "--obs-type", "state", "--method", "uniform", "--prior-dirs",
+               only_run(prior), "--run-dir", str(tmp_path / "adapt"), *no_horizon, "--total-steps", "300")
+    assert "multitask buffer: 3 prior episodes" in proc.stdout
+    wrong = run("--env-id", "dmc/walker-walk", "--collect-expert", "1", "--run-dir", str(tmp_path), check=False)
+    assert wrong.returncode == 2 and wrong.stderr.strip().startswith("error: --collect-expert"), wrong.stderr
+
+
 def bench(*flags, timeout=300):
     return run_script(os.path.join("benchmarks", "bench_update.py"), *flags, timeout=timeout)
 

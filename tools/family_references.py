@@ -6,6 +6,8 @@ time limits, Meta-World on the `new` task vectors of seed 1).
     python tools/family_references.py --episodes 20 --out /tmp/references.json
     python tools/family_references.py --table2         # Table 2's tasks at the Meta-World default schedule
                                                        # -> results/metaworld_table2/references.json
+    python tools/family_references.py --kitchen --episodes 50   # the kitchen tables' cells, from the fixed start
+                                                       # -> results/kitchen_tables/references.json
 """
 import argparse
 import json
@@ -21,13 +23,16 @@ import rama_dreamer  # noqa: E402
 import rama_metaworld  # noqa: E402
 
 # the cells of sweeps/families_state.toml: (cell, script module, env id, its other flags)
-FAMILIES = [("kitchen_bluebox", rama_dreamer, "kitchen/bluebox", {}),
+FAMILIES = [("kitchen_bluebox", rama_dreamer, "kitchen/bluebox", {"kitchen_start": "random"}),
             ("metaworld_drawer_close", rama_metaworld, "metaworld/drawer-close",
              {"task_set": "new", "action_repeat": 2}),
             ("metaworld_push", rama_metaworld, "metaworld/push", {"task_set": "new", "action_repeat": 2})]
 # sweeps/metaworld_table2.toml's cells (named by task) at rama_metaworld.py's default schedule (action repeat 1)
 TABLE2 = [(name.replace("-", "_"), rama_metaworld, f"metaworld/{name}", {"task_set": "new"})
           for name in ("push", "dial-turn")]
+# sweeps/kitchen_tables.toml's cells: Box and Box -> Cone (whose runs act on the cone), the paper's fixed start
+KITCHEN = [("box", rama_dreamer, "kitchen/bluebox", {"kitchen_start": "fixed"}),
+           ("box_cone", rama_dreamer, "kitchen/bluecone", {"kitchen_start": "fixed"})]
 
 
 def expert(S, env):
@@ -61,12 +66,14 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=10, help="episodes per policy and family")
     parser.add_argument("--table2", action="store_true", help="score Table 2's tasks (push, dial-turn) instead")
+    parser.add_argument("--kitchen", action="store_true", help="score the kitchen tables' cells instead")
     parser.add_argument("--out", default=None, help="the JSON to write (default: the chosen set's results folder)")
     cli = parser.parse_args()
-    folder = "metaworld_table2" if cli.table2 else "families_state"
+    folder, cells = (("metaworld_table2", TABLE2) if cli.table2 else ("kitchen_tables", KITCHEN) if cli.kitchen
+                     else ("families_state", FAMILIES))
     cli.out = cli.out or os.path.join(ROOT, "results", folder, "references.json")
     table = {cell: {policy: score(S, env_id, flags, policy, cli.episodes) for policy in ("random", "expert")}
-             for cell, S, env_id, flags in (TABLE2 if cli.table2 else FAMILIES)}
+             for cell, S, env_id, flags in cells}
     os.makedirs(os.path.dirname(cli.out), exist_ok=True)
     with open(cli.out, "w") as f:
         json.dump(table, f, indent=2)
