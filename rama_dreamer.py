@@ -546,18 +546,18 @@ def collect_expert_episodes(args: Args, run_path: str):
     action_size = envs.single_action_space.shape[0]
     episode_dir = os.path.join(run_path, "episodes")
     os.makedirs(episode_dir, exist_ok=True)
-    total = args.collect_expert + args.collect_random
+    total, task = args.collect_expert + args.collect_random, make_env_spec(args.env_id)["name"]
+
+    def expert(obs):  # (1, A): the pusher's action plus exploration noise, from the episode's rng
+        noisy = scripted_action(env) + args.expl_noise * rng.standard_normal(action_size)
+        return np.clip(noisy, -1, 1).astype(np.float32)[None]
+
+    uniform = lambda o: rng.uniform(-1, 1, (1, action_size)).astype(np.float32)  # noqa: E731
     try:
         for index in tqdm(range(len(list_episode_files(episode_dir)), total), desc="prior episodes"):
-            rng = np.random.default_rng([args.seed, index])
-
-            def expert(obs):  # (1, A): the pusher's action plus exploration noise
-                noisy = scripted_action(env) + args.expl_noise * rng.standard_normal(action_size)
-                return np.clip(noisy, -1, 1).astype(np.float32)[None]
-
-            uniform = lambda o: rng.uniform(-1, 1, (1, action_size)).astype(np.float32)  # noqa: E731
+            rng = np.random.default_rng([args.seed, index])  # episode k's own stream: a resumed collection matches
             episode = run_episodes(envs, expert if index < args.collect_expert else uniform,
-                                   [args.seed * 1_000_003 + index], make_env_spec(args.env_id)["name"])[0][0]
+                                   [args.seed * 1_000_003 + index], task)[0][0]
             save_episode(episode_dir, index, episode)
     finally:
         envs.close()
