@@ -47,6 +47,7 @@ import fnmatch
 import glob
 import json
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -385,8 +386,27 @@ def run_ray(todo: list, address: str, retries: int) -> list:
     return failures
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse's errors as one line, `error: --flag: ...`, exit code 2, as every other bad input here (and in the
+    training scripts) is reported: argparse's own usage block would bury the line that matters."""
+
+    def error(self, message: str):
+        flags = [o for a in self._actions for o in a.option_strings if o.startswith("--") and o != "--help"]
+        named = re.match(r"argument (\S+?)(?:/\S+)?: (.*)", message, re.S)  # a bad value, a bad choice, no value
+        if named:
+            message = f"{named.group(1)}: {named.group(2)}"
+        elif message.startswith("unrecognized arguments: "):
+            first = message.split(": ", 1)[1].split()[0]
+            message = (f"{first}: unknown flag (known: {', '.join(flags)})" if first.startswith("-")
+                       else f"{first}: one spec only (give the others' runs as cells of one spec)")
+        elif message.startswith("the following arguments are required: "):
+            message = f"{message.split(': ', 1)[1]}: missing (a sweep spec, e.g. sweeps/cartpole_tables.toml)"
+        print(f"error: {message}", file=sys.stderr)
+        sys.exit(2)
+
+
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("spec", help="a sweep spec (TOML), e.g. sweeps/cartpole_tables.toml")
     parser.add_argument("--workers", type=int, default=1, help="local backend: runs at a time (each gets cores / N threads, or "
                         "OMP_NUM_THREADS when set)")
@@ -406,8 +426,10 @@ def main():
                         help="only copy the done runs' results again from their run folders to a results/ that lost "
                              "them (a device's working tree resynced between calls), and run nothing")
     args = parser.parse_args()
-    if args.max_runs is not None and args.max_runs < 1:
-        parser.error(f"--max-runs must be >= 1 (got {args.max_runs})")
+    for name, least in (("max_runs", 1), ("workers", 1), ("ray_retries", 0)):  # checked before anything is written
+        value = getattr(args, name)
+        if value is not None and value < least:
+            parser.error(f"argument --{name.replace('_', '-')}: must be >= {least} (got {value})")
     if args.ray_address:  # Ray workers may start in another folder: give them absolute paths (shared filesystem)
         args.runs_dir, args.results_dir = os.path.abspath(args.runs_dir), os.path.abspath(args.results_dir)
     try:
