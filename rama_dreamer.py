@@ -61,7 +61,7 @@ td.Distribution.set_default_validate_args(False)  # argument checks cost Python 
 
 
 # ----------------------------------------------------------------------------------------------------------
-# 2. Args
+# 2. Args, in the paper's order
 # ----------------------------------------------------------------------------------------------------------
 @dataclass
 class Args:
@@ -293,53 +293,12 @@ def apply_preset(args: Args, given: set) -> Args:
     return dataclasses.replace(args, **values)
 
 
-def flag(name: str) -> str:
-    """An Args field as the command line spells it: address_lr -> --address-lr."""
-    return "--" + name.replace("_", "-")
-
-
-def check_args(args: Args) -> None:
-    """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
-    positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
-                "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
-                "prefill_episodes", "prior_max_episodes", "address_batch", "address_units", "address_cnn_depth",
-                "address_refresh", "address_candidates", "address_plot_every", "model_lr", "actor_lr", "value_lr",
-                "address_lr", "grad_clip", "address_grad_clip", "address_logit_scale", "num_envs"]
-    for name in positive + ["obs_std", "address_adam_eps"]:  # the last two may be None (a default)
-        if getattr(args, name) is not None and not getattr(args, name) > 0:  # `not >`: NaN is refused too
-            raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
-    for name in ["eval_episodes", "address_imagine_starts", "log_interval_seconds", "collect_expert", "collect_random"]:
-        if not getattr(args, name) >= 0:  # NaN is refused too
-            raise UsageError(f"{flag(name)} must be >= 0 (got {getattr(args, name)})")
-    if not 0.0 <= args.address_weight_decay < 1.0:
-        raise UsageError(f"--address-weight-decay must be in [0, 1) (got {args.address_weight_decay})")
-    if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
-        raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
-    if not 0.0 <= args.address_prob <= 1.0 or not 0.0 <= args.current_fraction <= 1.0:
-        raise UsageError("--address-prob and --current-fraction must be in [0, 1]")
-    if args.method == "dreamer" and args.prior_dirs:
-        raise UsageError("--prior-dirs needs a method that uses prior data (uniform, vrama, rrama, rbrama)")
-    if args.seq_len < 2 or args.horizon < 2:
-        raise UsageError(f"--seq-len and --horizon must be >= 2 (got {args.seq_len}, {args.horizon})")
-    if conv_sizes(args.image_size)[-1] < 1:
-        raise UsageError(f"--image-size must be >= 46 for the four stride-2 convs (got {args.image_size})")
-    if not task_list(args):
-        raise UsageError("--task-sequence names no task")
-    if args.collect_expert and not args.env_id.startswith("kitchen/"):
-        raise UsageError(f"--collect-expert: only the kitchen has a scripted expert (--env-id is {args.env_id})")
-    if args.collect_random and not args.collect_expert:
-        raise UsageError("--collect-random needs --collect-expert (the random episodes follow the expert's)")
-    if args.track and importlib.util.find_spec("wandb") is None:
-        raise UsageError("--track needs wandb: pip install wandb")
-    if episode_agent_steps(args) < args.seq_len:
-        raise UsageError(f"--seq-len {args.seq_len} is longer than an episode ({episode_agent_steps(args)} agent "
-                         f"steps); lower it or raise --time-limit")
-    for env_id in task_list(args):
-        make_env_spec(env_id)  # raises a UsageError naming --env-id
-    device = resolve_device(args.device)
-    check_precision(args.precision, device)
-    if args.cuda_graph and device.type != "cuda":
-        raise UsageError(f"--cuda-graph needs a CUDA device (--device {args.device} is {device})")
+# --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
+# era) where it departs from the paper's text; docs/deviations.md#authors-preset names the file and line of each value
+PRESETS = {"authors-code": dict(
+    own_episodes_in_m=False, address_lr=1e-4, address_adam_eps=1e-5, address_weight_decay=1e-6,
+    address_candidates_mode="fresh", address_batch=102, address_oversample_ends=True, reward_mask_borrowed="all",
+    vrama_objective="posterior", address_stop_grad_x=True, addressed_wm_rule="batch", address_cnn_depth=32)}
 
 
 def episode_agent_steps(args: Args) -> int:
@@ -356,60 +315,6 @@ def task_list(args: Args) -> list:
 
 
 ADDRESSED_METHODS = ("vrama", "rrama", "rbrama")
-# the flags that may be given beside --resume (they change neither the networks nor what was collected); the other
-# flags come from the run's args.json
-RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
-                "plain_log", "log_interval_seconds", "precision", "channels_last", "prefetch", "cuda_graph")
-# flags added after runs were saved, with the value that was those runs' only behaviour: an args.json without one
-# resumes with this value; any other missing flag is refused
-ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": None, "address_weight_decay": 0.0,
-               "address_candidates_mode": "memory", "address_logit_scale": 1.0, "address_oversample_ends": False,
-               "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
-               "addressed_wm_rule": "rows", "cuda_graph": None,
-               "init": "torch", "eval_action": "mean"}
-# --preset authors-code: the authors' code (artemZholus/generalization_with_world_models at 6bd4a23, the paper's
-# era) where it departs from the paper's text; docs/deviations.md#authors-preset names the file and line of each value
-PRESETS = {"authors-code": dict(
-    own_episodes_in_m=False, address_lr=1e-4, address_adam_eps=1e-5, address_weight_decay=1e-6,
-    address_candidates_mode="fresh", address_batch=102, address_oversample_ends=True, reward_mask_borrowed="all",
-    vrama_objective="posterior", address_stop_grad_x=True, addressed_wm_rule="batch", address_cnn_depth=32)}
-
-
-class UsageError(Exception):
-    """Bad input from the command line or from files, or a run that had to stop: printed as one line; exit code 2,
-    or `code` (1: non-finite losses; 128 + signal number: stopped by SIGINT/SIGTERM)."""
-
-    def __init__(self, message: str, code: int = 2):
-        super().__init__(message)
-        self.code = code
-
-
-def given_flags(argv: list) -> set:
-    """The Args fields named on a command line (tyro spells them --foo-bar, --foo-bar=x, --no-foo-bar)."""
-    names = {f.name for f in dataclasses.fields(Args)}
-    given = {a[2:].split("=")[0].replace("-", "_") for a in argv if a.startswith("--")}
-    return {n if n in names else n[3:] for n in given if n in names or n[3:] in names}
-
-
-STOP = {"signal": None, "run_path": None}  # set by SIGINT/SIGTERM: the loops stop at their next safe point
-
-
-def request_stop(signum, frame):
-    """SIGINT or SIGTERM (what clusters send before preemption): stop after the current update or env step, the run
-    folder holding only complete episodes and a checkpoint consistent with them; a second signal stops at once."""
-    if STOP["signal"] is not None:
-        raise KeyboardInterrupt
-    STOP["signal"] = signum
-
-
-def resume_hint() -> str:
-    run_path = STOP["run_path"]
-    return f"; continue with: python {os.path.basename(__file__)} --resume {run_path}" if run_path else ""
-
-
-def check_stop():
-    if STOP["signal"] is not None:
-        raise UsageError(f"stopped by {signal.Signals(STOP['signal']).name}{resume_hint()}", 128 + STOP["signal"])
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -518,6 +423,16 @@ EPISODE_EXTRAS = ()  # the keys of reset's info an episode file stores as well (
 def check_prior_episodes(args: Args, multitask) -> None:
     """What the prior's episodes (M, a Replay) must satisfy beyond matching shapes: nothing more for these envs
     (rama_metaworld.py refuses a prior that ran on the adapting run's own task vectors)."""
+
+
+def check_env_args(args: Args) -> None:
+    """The flags of this script's environments, checked by check_args (section 10) with the rest."""
+    if not args.collect_expert >= 0 or not args.collect_random >= 0:
+        raise UsageError("--collect-expert and --collect-random must be >= 0")
+    if args.collect_expert and not args.env_id.startswith("kitchen/"):
+        raise UsageError(f"--collect-expert: only the kitchen has a scripted expert (--env-id is {args.env_id})")
+    if args.collect_random and not args.collect_expert:
+        raise UsageError("--collect-random needs --collect-expert (the random episodes follow the expert's)")
 
 
 def make_env(args: Args, env_id: str, seed: int) -> gymnasium.Env:
@@ -666,36 +581,6 @@ class Replay:
             keep = rng.choice(len(starts), cap, replace=False)
             episode_ids, starts = episode_ids[keep], starts[keep]
         return episode_ids, starts
-
-
-class ChunkSampler:
-    """The current-task chunks x of the coming updates (--prefetch: batch k+1 is sampled, and pinned for CUDA, in a
-    background thread while update k trains). Its own random stream: the same batches with or without prefetch."""
-
-    def __init__(self, replay: Replay, n: int, seq_len: int, rng: np.random.Generator, device, prefetch: bool):
-        self.replay, self.n, self.seq_len, self.rng, self.device = replay, n, seq_len, rng, torch.device(device)
-        self.pool = ThreadPoolExecutor(1, thread_name_prefix="prefetch") if prefetch else None
-
-    def _sample(self) -> dict:
-        batch = {k: torch.from_numpy(v) for k, v in self.replay.sample(self.n, self.seq_len, self.rng).items()}
-        if self.device.type == "cuda":  # page-locked memory: the copy to the GPU runs asynchronously
-            batch = {k: v.pin_memory() for k, v in batch.items()}
-        return batch
-
-    def batches(self, count: int):
-        """Yields (x on the device, seconds the caller waited for it) `count` times; the replay must not change
-        while the generator runs (the training loop adds episodes only between rounds of updates)."""
-        pending = self.pool.submit(self._sample) if self.pool else None
-        for i in range(count):
-            t0 = time.perf_counter()
-            batch = pending.result() if self.pool else self._sample()
-            if self.pool and i + 1 < count:
-                pending = self.pool.submit(self._sample)
-            yield to_torch(batch, self.device), time.perf_counter() - t0
-
-    def close(self):
-        if self.pool:
-            self.pool.shutdown()
 
 
 def episode_folders(directory: str) -> list:
@@ -853,17 +738,6 @@ def mlp_encoder(obs_size: int, units: int) -> nn.Module:
     encoder = nn.Sequential(MLP(obs_size, units, 2, units), nn.ELU())
     encoder.embed_size = units
     return encoder
-
-
-def set_speed_options(module: nn.Module, precision: str, channels_last: bool) -> nn.Module:
-    """--precision and --channels-last for every conv stack and MLP inside module (the RSSM itself stays fp32)."""
-    for m in module.modules():
-        if isinstance(m, (ConvEncoder, ConvDecoder, MLP)):
-            m.bf16 = precision == "bf16"
-        if isinstance(m, (ConvEncoder, ConvDecoder)) and channels_last:
-            m.channels_last = True
-            m.to(memory_format=torch.channels_last)  # conv weights (4-D) only
-    return module
 
 
 def init_weights(module: nn.Module, scheme: str) -> nn.Module:
@@ -1068,7 +942,7 @@ class AddressNet(nn.Module):
 
 
 # ----------------------------------------------------------------------------------------------------------
-# 6. Losses and imagination
+# 6. Dreamer: losses, imagination and the update
 # ----------------------------------------------------------------------------------------------------------
 def masked_mean(x, mask=None):
     """Mean of x (B, T) over the chunks whose mask (B,) is 1 (all chunks when mask is None)."""
@@ -1548,113 +1422,6 @@ def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: dict, 
     return out
 
 
-class GraphedUpdate:
-    """--cuda-graph: `update` captured as CUDA graphs and replayed, one launch instead of ~1,000. A graph has fixed
-    shapes: one per kind of update (its tensors' shapes; and mixed or not where that decides the model step). The
-    first `warmup` updates of a kind run eagerly on a side stream, as a capture needs (cuBLAS, the allocator and the
-    optimisers' state set up). Each replay first copies x and the plan into static tensors that all graphs share (the
-    memory-mode pool only after a refresh made a new one). A capture that fails prints one line; the run goes on
-    eagerly."""
-
-    def __init__(self, agent: Agent, addressing: Optional[Addressing], args: Args, warmup: int = 3):
-        self.agent, self.addressing, self.args, self.warmup = agent, addressing, args, warmup
-        self.graphs, self.seen, self.failed, self.stream, self.mempool = {}, {}, False, None, None
-        self.static = {}  # (name, shape) -> [the graphs' input tensor, the tensor last copied into it]
-
-    def __call__(self, x: dict, plan: dict) -> dict:
-        inputs = {f"x.{k}": v for k, v in x.items()}  # name -> tensor: everything the graph reads
-        for part in ("m_batch", "pool"):
-            inputs.update({f"{part}.{k}": v for k, v in plan.get(part, {}).items()})
-        inputs.update({k: v for k, v in plan.items() if isinstance(v, torch.Tensor)})
-        key = (tuple((k, tuple(v.shape)) for k, v in inputs.items()), mixed_skips_model_step(self.args) and
-               plan.get("mixed"))
-        if self.failed or (key not in self.graphs and self.seen.get(key, 0) < self.warmup):
-            self.seen[key] = self.seen.get(key, 0) + 1
-            return self.on_side_stream(lambda: update(self.agent, self.addressing, x, plan, self.args))
-        if key not in self.graphs:
-            try:
-                self.graphs[key] = self.capture(key, inputs, plan)
-            except Exception as e:
-                self.failed = True
-                self.recover()
-                print(f"--cuda-graph: capture failed, updates run eagerly ({type(e).__name__}: {str(e)[:160]})",
-                      flush=True)
-                return self(x, plan)
-        graph, t0 = self.graphs[key], time.perf_counter()
-        for name, source in inputs.items():  # no input changes in place: one copied before holds the same values
-            static = self.static[(name, tuple(source.shape))]
-            if static[1] is not source:  # (the memory-mode pool: until the next refresh)
-                static[0].copy_(source, non_blocking=True)
-                static[1] = source
-        graph.replay()
-        metrics = dict(zip(graph.metric_names, graph.metrics.clone().unbind()))
-        timings = {"batch_sampling": 0.0, "graph_replay": time.perf_counter() - t0}
-        if "refresh_seconds" in plan:
-            metrics["addressing/refresh_seconds"] = torch.tensor(plan["refresh_seconds"])
-            timings["addressing"] = plan["refresh_seconds"]
-        picks = (plan["pool_ids"], graph.picks.clone()) if plan.get("mixed") else None
-        return {"metrics": metrics, "timings": timings, "picks": picks}
-
-    def capture(self, key: tuple, inputs: dict, plan: dict) -> types.SimpleNamespace:
-        """Record `update` on the static inputs; the metrics it returns become one vector. A memory-mode pool padded
-        to another size retires the graphs of the old size (it may shrink too: a refresh's random phases change the
-        count of candidate chunks, so near a power of two the padding can switch back and forth, each switch a new
-        capture), and the static tensors no graph reads any more."""
-        pool_rows = lambda k: dict(k[0]).get("pool_embed")  # noqa: E731
-        self.graphs = {k: g for k, g in self.graphs.items() if pool_rows(k) == pool_rows(key)}
-        wanted = {entry for k in [key, *self.graphs] for entry in k[0]}
-        self.static = {k: v for k, v in self.static.items() if k in wanted}
-        self.mempool = self.mempool if self.graphs else None  # a fresh pool once none is left in use
-        static = {}
-        for name, v in inputs.items():
-            static[name] = self.static.setdefault((name, tuple(v.shape)), [v.clone(), v])[0]
-        x = {k[2:]: v for k, v in static.items() if k.startswith("x.")}
-        static_plan = {k: plan[k] for k in ("mixed", "pool_ids") if k in plan}
-        static_plan.update({k: v for k, v in static.items() if "." not in k})
-        for part in ("m_batch", "pool"):
-            if part in plan:
-                static_plan[part] = {k.split(".", 1)[1]: v for k, v in static.items() if k.startswith(part + ".")}
-
-        def recorded():
-            out = update(self.agent, self.addressing, x, static_plan, self.args)
-            picks = out["picks"][1] if out["picks"] is not None else None
-            return list(out["metrics"]), torch.stack([v.detach().float() for v in out["metrics"].values()]), picks
-
-        replay, (names, vector, picks) = self.record(recorded)  # vector: (K,) the K metrics
-        for opt in list(self.agent.optimizers().values()) + ([self.addressing.opt] if self.addressing else []):
-            opt.zero_grad(set_to_none=True)  # the gradients the capture left in the pool are no one's to read
-        return types.SimpleNamespace(replay=replay, metric_names=names, metrics=vector, picks=picks)
-
-    def record(self, fn):
-        """fn captured as a CUDA graph (its kernels are recorded, not run): (replay, fn's outputs as static tensors).
-        One memory pool serves every graph (they never run at once); thread_local: the prefetch thread may pin."""
-        graph = torch.cuda.CUDAGraph()
-        if self.addressing is not None:  # the picks' own generator: each replay advances it as eager draws would
-            graph.register_generator_state(self.addressing.generator)
-        self.mempool = self.mempool or torch.cuda.graph_pool_handle()
-        with torch.cuda.graph(graph, pool=self.mempool, stream=self.stream, capture_error_mode="thread_local"):
-            outputs = fn()
-        return graph.replay, outputs
-
-    def recover(self):
-        """What a failed capture leaves behind (torch ~2.11): the capture stream current and the generators marked as
-        capturing, so that the next eager draw would fail. Back to the default stream and to plain generator states."""
-        torch.cuda.set_stream(torch.cuda.default_stream())
-        generators = [torch.cuda.default_generators[torch.cuda.current_device()]]
-        for generator in generators + ([self.addressing.generator] if self.addressing else []):
-            generator.graphsafe_set_state(generator.clone_state())
-        torch.cuda.synchronize()
-
-    def on_side_stream(self, fn):
-        """An eager update on the capture's stream (ordered after and before the default stream's work)."""
-        self.stream = self.stream or torch.cuda.Stream()
-        self.stream.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(self.stream):
-            out = fn()
-        torch.cuda.current_stream().wait_stream(self.stream)
-        return out
-
-
 def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int,
                   seq_len: int) -> dict:
     """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
@@ -1678,7 +1445,7 @@ def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressin
 
 
 # ----------------------------------------------------------------------------------------------------------
-# 8. Acting, logging, checkpoints
+# 8. Acting and logging
 # ----------------------------------------------------------------------------------------------------------
 class Policy:
     """Acts online in N envs at once: keeps the RSSM posteriors of the current episodes and picks actions from them."""
@@ -1798,76 +1565,6 @@ class Logger:
             self.wandb.finish()
 
 
-def checked_args(args: Args) -> dict:
-    """What a checkpoint must have been saved with (as JSON has it): all args but those --resume may change."""
-    saved = json.loads(json.dumps(dataclasses.asdict(args)))
-    return {k: v for k, v in saved.items() if k not in RESUME_FLAGS + ("resume", "run_dir")}
-
-
-def write_checkpoint(path: str, payload: dict):
-    """Atomic like the episodes (a temp file, then a rename); the one before stays as PATH.prev until the new one is
-    in place, for a damaged newest file to fall back to."""
-    torch.save(payload, path + ".tmp")
-    if os.path.exists(path):
-        os.replace(path, path + ".prev")
-    os.replace(path + ".tmp", path)
-
-
-def read_checkpoint(path: str, args: Args) -> Optional[dict]:
-    """The newest loadable of PATH and PATH.prev (on the CPU; None when neither exists), saying so when it falls
-    back; one line naming the file when neither loads or when it was saved with other args than args.json's."""
-    unreadable = []
-    for candidate in (path, path + ".prev"):
-        if not os.path.exists(candidate):
-            continue
-        try:
-            payload = torch.load(candidate, map_location="cpu", weights_only=False)
-            saved = payload.get("args", {})  # checkpoints written before it was stored: shapes are checked on load
-        except Exception as e:
-            unreadable.append(f"{candidate}: not a readable checkpoint ({type(e).__name__}: {str(e)[:80]!r})")
-            continue
-        now = checked_args(args)
-        diff = [f"{k} {saved[k]!r} there, {now[k]!r} in args.json" for k in saved if k in now and saved[k] != now[k]]
-        if diff:
-            raise UsageError(f"{candidate} does not match args.json: " + "; ".join(diff))
-        if unreadable:
-            print(f"warning: {unreadable[0]}; falling back to {candidate}", flush=True)
-        return payload
-    if unreadable:
-        raise UsageError("; ".join(unreadable) + " (remove it to restart the networks from the episodes)")
-    return None
-
-
-def load_state(path: str, module, state_dict: dict):
-    try:
-        module.load_state_dict(state_dict)
-    except RuntimeError as e:  # torch gives a line per tensor: the first one names the mismatch
-        raise UsageError(f"{path} does not match args.json: {str(e).splitlines()[1].strip()[:200]}") from None
-
-
-def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
-    payload = {"agent": agent.state_dict(), "optimizers": {k: o.state_dict() for k, o in agent.optimizers().items()},
-               "state": state, "rng": {"python": random.getstate(), "numpy": np.random.get_state(),
-                                       "torch": torch.get_rng_state()}, "args": checked_args(args)}
-    write_checkpoint(path, payload)
-
-
-def load_optimizer(opt, saved: dict):
-    """An optimiser's saved state under this run's `capturable` (--cuda-graph may differ from the saving run's)."""
-    capturable = opt.param_groups[0]["capturable"]
-    opt.load_state_dict({**saved, "param_groups": [{**g, "capturable": capturable} for g in saved["param_groups"]]})
-
-
-def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
-    load_state(path, agent, payload["agent"])
-    for name, opt in agent.optimizers().items():
-        load_optimizer(opt, payload["optimizers"][name])
-    random.setstate(payload["rng"]["python"])
-    np.random.set_state(payload["rng"]["numpy"])
-    torch.set_rng_state(payload["rng"]["torch"])
-    return payload["state"]
-
-
 def write_gif(path: str, frames, fps: int = 25):
     import imageio.v2 as imageio
 
@@ -1888,96 +1585,6 @@ def open_loop_frames(wm: WorldModel, batch: dict, context: int = 5):
     return ((grid + 0.5).clamp(0, 1) * 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise UsageError(f"--device {name!r} is not a torch device (auto, cpu, cuda, cuda:N)") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise UsageError(f"--device {name}: CUDA is not available on this machine")
-    return device
-
-
-def native_bf16(device: torch.device, cpuinfo: str = "/proc/cpuinfo") -> Tuple[bool, str]:
-    """Whether the device multiplies bf16 matrices in hardware, and what was found. Without it (a CPU with AVX2
-    only) bf16 is emulated: measured 13x slower than fp32 at the paper's size."""
-    if device.type == "cuda":
-        return torch.cuda.is_bf16_supported(), f"CUDA {torch.cuda.get_device_name(device)}"
-    try:
-        with open(cpuinfo) as f:
-            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
-    except OSError:  # not Linux: no flags to read, so bf16 counts as emulated
-        flags = []
-    found = [flag for flag in ("avx512_bf16", "amx_bf16") if flag in flags]
-    return bool(found), f"CPU {torch.backends.cpu.get_cpu_capability()}" + (f" with {'+'.join(found)}" if found else
-                                                                           ", no avx512_bf16 or amx_bf16")
-
-
-def check_precision(precision: str, device: torch.device) -> None:
-    """--precision bf16 only where bf16 is fast: elsewhere one line that says why, instead of a run 13x slower."""
-    native, found = native_bf16(device)
-    if precision == "bf16" and not native:
-        raise UsageError(f"--precision bf16: {found}, so bf16 would be emulated (about 13x slower than fp32 on such "
-                         f"a CPU); use --precision fp32")
-
-
-# ----------------------------------------------------------------------------------------------------------
-# 9. Training loop
-# ----------------------------------------------------------------------------------------------------------
-def resolve_run(args: Args, given: set):
-    """The run's args and folder, checked, nothing written: a new folder's name, or --resume's folder with its saved
-    args and the RESUME_FLAGS given beside it (any other flag there is refused)."""
-    if not args.resume:
-        env_name = "__".join(t.replace("/", "_") for t in task_list(args)[:1]) + ("_seq" if args.task_sequence else "")
-        return args, os.path.join(args.run_dir, f"{env_name}__{args.exp_name}__{args.method}__{args.seed}__"
-                                                f"{int(time.time())}")
-    args_path = os.path.join(args.resume, "args.json")
-    if not os.path.isfile(args_path):
-        raise UsageError(f"--resume {args.resume}: no args.json there (not a run folder)")
-    refused = sorted(given - set(RESUME_FLAGS) - {"resume"})
-    if refused:
-        raise UsageError(f"--resume continues a run with its saved args: {', '.join(flag(n) for n in refused)} may "
-                         f"not be given with it (only {', '.join(flag(n) for n in RESUME_FLAGS)})")
-    try:
-        with open(args_path) as f:
-            saved = {**ADDED_FLAGS, **json.load(f)}
-        missing = sorted(flag(f.name) for f in dataclasses.fields(Args) if f.name not in saved)
-        if missing:  # a default filled in here could differ from what the run was trained with
-            raise UsageError(f"saved by an older version of this script (no {', '.join(missing)}); resume it with that "
-                             f"version")
-        fields = {f.name: saved[f.name] for f in dataclasses.fields(Args)}  # flags since removed are dropped
-        # --cuda-graph not given: the default of the device resumed on (graphs or not, the update's math is the same)
-        given_now = {"cuda_graph": None, **{k: getattr(args, k) for k in given & set(RESUME_FLAGS)}}
-        resumed = dataclasses.replace(Args(**fields), resume=args.resume, **given_now)
-        check_args(resumed)
-    except (ValueError, TypeError, AttributeError, UsageError) as e:  # JSONDecodeError is a ValueError
-        raise UsageError(f"{args_path}: {e}") from None
-    return resumed, args.resume
-
-
-def open_run(args: Args, run_path: str, rewrite_args: bool):
-    """Create (or reopen) the run folder and lock it for this process (the lock goes with the process, even on
-    kill -9): a second writer gets one line. Writes args.json for a new run, or a resumed one given RESUME_FLAGS."""
-    try:
-        os.makedirs(run_path, exist_ok=True)
-        lock = open(os.path.join(run_path, ".lock"), "a")
-    except OSError as e:
-        raise UsageError(f"{'--resume' if args.resume else '--run-dir'}: cannot write {run_path} ({e.strerror})") \
-            from None
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        raise UsageError(f"{run_path}: another process is writing this run folder (it holds its .lock)") from None
-    if rewrite_args or not args.resume:
-        path = os.path.join(run_path, "args.json")
-        with open(path + ".tmp", "w") as f:
-            json.dump(dataclasses.asdict(dataclasses.replace(args, resume=None)), f, indent=2)
-        os.replace(path + ".tmp", path)
-    return lock
-
-
 def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: float) -> str:
     """The plain-log line inside a round of updates: how far the round is, its speed and the time it has left."""
     from tqdm import tqdm
@@ -1987,6 +1594,9 @@ def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: 
             f"round ETA {tqdm.format_interval((todo - done) / rate)}")
 
 
+# ----------------------------------------------------------------------------------------------------------
+# 9. The training loop (Algorithms 1 and 2)
+# ----------------------------------------------------------------------------------------------------------
 class Task(types.SimpleNamespace):
     """One task of Algorithm 1 as the steps of Algorithm 2 share it. Set by train_task: args, env_id, name (the
     task's short name), seed, path (its folder), device, replay (M_τ), multitask (M), addressing (f_φ or None), rng,
@@ -2111,21 +1721,6 @@ def train_round(task: Task):
     return rows, timings, picks, done
 
 
-def first_update_notice(args: Args, device, env_steps: int, seconds: float) -> Optional[str]:
-    """On a CPU, for pixels at the paper's size (n x L >= 50 x 50, 64x64 images): what the first update took and
-    what the run's updates would take at that speed, and the one-minute alternative. None elsewhere."""
-    if torch.device(device).type != "cpu" or args.obs_type != "pixels" or args.batch_size * args.seq_len < 2500 \
-            or args.image_size < 64:
-        return None
-    episode_steps = episode_agent_steps(args) * args.action_repeat  # env steps of an episode
-    updates = max(args.total_steps - env_steps, 0) / episode_steps * args.updates_per_episode
-    days = updates * seconds / 86400
-    return (f"note: on this CPU one update at the paper's size took {seconds:.1f} s, so the {updates:,.0f} updates "
-            f"to --total-steps {args.total_steps:,} would take about "
-            + (f"{days:,.1f} days (a GPU job)" if days >= 2 else f"{24 * days:.1f} hours")
-            + ". A one-minute look on a CPU: python sweep.py sweeps/smoke.toml --workers 2, or --obs-type state")
-
-
 def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int) -> dict:
     """The round's means over the updates that logged each key, read from the device once, and checked."""
     sums, counts = {}, {}
@@ -2146,18 +1741,6 @@ def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int)
     return metrics
 
 
-def check_finite(task: Task, rows: list, metrics: dict, done: int):
-    """One check per round (the sums carry any NaN or inf): the round is then neither saved nor logged, and the run
-    stops with a line naming the first bad metric and its update."""
-    if all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in task.agent.parameters()):
-        return
-    bad = [(i, k) for i, row in enumerate(rows) for k, v in row.items() if not v.isfinite()]
-    i, key = (bad or [(done - 1, "weights")])[0]
-    task.logger.log(task.env_steps, {"errors/non_finite_update": task.state["updates"] - done + i + 1})
-    raise UsageError(f"non-finite {key} at update {task.state['updates'] - done + i + 1}: stopped without saving "
-                     f"its round (is a learning rate too high?)", 1)
-
-
 def end_round(task: Task, rows: list, timings: dict, picks: list, done: int):
     """After a round: its metrics, then (when it did any update) the checkpoints and the log line, then the stop
     check, and the round's pictures: open-loop predictions (--capture-video) and what q̂ picks."""
@@ -2173,15 +1756,6 @@ def end_round(task: Task, rows: list, timings: dict, picks: list, done: int):
         write_gif(os.path.join(task.path, "videos", f"openloop_{task.env_steps:08d}.gif"),
                   open_loop_frames(task.agent.wm, batch))
     draw_addressing(task)
-
-
-def save_checkpoints(task: Task):
-    """checkpoint.pt (agent, optimisers, state, RNG states) and address.pt (f_φ, its frozen copy, its optimiser)."""
-    save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, task.state, task.args)
-    if task.addressing is not None:
-        net, x_net, opt = task.addressing.net, task.addressing.x_net, task.addressing.opt
-        write_checkpoint(task.address_path, {"net": net.state_dict(), "x_net": x_net.state_dict(),
-                                             "opt": opt.state_dict(), "args": checked_args(task.args)})
 
 
 def draw_addressing(task: Task):
@@ -2305,6 +1879,448 @@ def main(args: Args, given: frozenset = frozenset()):
     for k, (env_id, task_path) in enumerate(zip(tasks, task_paths)):
         train_task(args, env_id, args.seed + 1000 * k, task_path, device, multitask, addressing, rng, address_path,
                    checkpoints.pop(task_path))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 10. Speed and reliability (the same math)
+# ----------------------------------------------------------------------------------------------------------
+def set_speed_options(module: nn.Module, precision: str, channels_last: bool) -> nn.Module:
+    """--precision and --channels-last for every conv stack and MLP inside module (the RSSM itself stays fp32)."""
+    for m in module.modules():
+        if isinstance(m, (ConvEncoder, ConvDecoder, MLP)):
+            m.bf16 = precision == "bf16"
+        if isinstance(m, (ConvEncoder, ConvDecoder)) and channels_last:
+            m.channels_last = True
+            m.to(memory_format=torch.channels_last)  # conv weights (4-D) only
+    return module
+
+
+class ChunkSampler:
+    """The current-task chunks x of the coming updates (--prefetch: batch k+1 is sampled, and pinned for CUDA, in a
+    background thread while update k trains). Its own random stream: the same batches with or without prefetch."""
+
+    def __init__(self, replay: Replay, n: int, seq_len: int, rng: np.random.Generator, device, prefetch: bool):
+        self.replay, self.n, self.seq_len, self.rng, self.device = replay, n, seq_len, rng, torch.device(device)
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="prefetch") if prefetch else None
+
+    def _sample(self) -> dict:
+        batch = {k: torch.from_numpy(v) for k, v in self.replay.sample(self.n, self.seq_len, self.rng).items()}
+        if self.device.type == "cuda":  # page-locked memory: the copy to the GPU runs asynchronously
+            batch = {k: v.pin_memory() for k, v in batch.items()}
+        return batch
+
+    def batches(self, count: int):
+        """Yields (x on the device, seconds the caller waited for it) `count` times; the replay must not change
+        while the generator runs (the training loop adds episodes only between rounds of updates)."""
+        pending = self.pool.submit(self._sample) if self.pool else None
+        for i in range(count):
+            t0 = time.perf_counter()
+            batch = pending.result() if self.pool else self._sample()
+            if self.pool and i + 1 < count:
+                pending = self.pool.submit(self._sample)
+            yield to_torch(batch, self.device), time.perf_counter() - t0
+
+    def close(self):
+        if self.pool:
+            self.pool.shutdown()
+
+
+class GraphedUpdate:
+    """--cuda-graph: `update` captured as CUDA graphs and replayed, one launch instead of ~1,000. A graph has fixed
+    shapes: one per kind of update (its tensors' shapes; and mixed or not where that decides the model step). The
+    first `warmup` updates of a kind run eagerly on a side stream, as a capture needs (cuBLAS, the allocator and the
+    optimisers' state set up). Each replay first copies x and the plan into static tensors that all graphs share (the
+    memory-mode pool only after a refresh made a new one). A capture that fails prints one line; the run goes on
+    eagerly."""
+
+    def __init__(self, agent: Agent, addressing: Optional[Addressing], args: Args, warmup: int = 3):
+        self.agent, self.addressing, self.args, self.warmup = agent, addressing, args, warmup
+        self.graphs, self.seen, self.failed, self.stream, self.mempool = {}, {}, False, None, None
+        self.static = {}  # (name, shape) -> [the graphs' input tensor, the tensor last copied into it]
+
+    def __call__(self, x: dict, plan: dict) -> dict:
+        inputs = {f"x.{k}": v for k, v in x.items()}  # name -> tensor: everything the graph reads
+        for part in ("m_batch", "pool"):
+            inputs.update({f"{part}.{k}": v for k, v in plan.get(part, {}).items()})
+        inputs.update({k: v for k, v in plan.items() if isinstance(v, torch.Tensor)})
+        key = (tuple((k, tuple(v.shape)) for k, v in inputs.items()), mixed_skips_model_step(self.args) and
+               plan.get("mixed"))
+        if self.failed or (key not in self.graphs and self.seen.get(key, 0) < self.warmup):
+            self.seen[key] = self.seen.get(key, 0) + 1
+            return self.on_side_stream(lambda: update(self.agent, self.addressing, x, plan, self.args))
+        if key not in self.graphs:
+            try:
+                self.graphs[key] = self.capture(key, inputs, plan)
+            except Exception as e:
+                self.failed = True
+                self.recover()
+                print(f"--cuda-graph: capture failed, updates run eagerly ({type(e).__name__}: {str(e)[:160]})",
+                      flush=True)
+                return self(x, plan)
+        graph, t0 = self.graphs[key], time.perf_counter()
+        for name, source in inputs.items():  # no input changes in place: one copied before holds the same values
+            static = self.static[(name, tuple(source.shape))]
+            if static[1] is not source:  # (the memory-mode pool: until the next refresh)
+                static[0].copy_(source, non_blocking=True)
+                static[1] = source
+        graph.replay()
+        metrics = dict(zip(graph.metric_names, graph.metrics.clone().unbind()))
+        timings = {"batch_sampling": 0.0, "graph_replay": time.perf_counter() - t0}
+        if "refresh_seconds" in plan:
+            metrics["addressing/refresh_seconds"] = torch.tensor(plan["refresh_seconds"])
+            timings["addressing"] = plan["refresh_seconds"]
+        picks = (plan["pool_ids"], graph.picks.clone()) if plan.get("mixed") else None
+        return {"metrics": metrics, "timings": timings, "picks": picks}
+
+    def capture(self, key: tuple, inputs: dict, plan: dict) -> types.SimpleNamespace:
+        """Record `update` on the static inputs; the metrics it returns become one vector. A memory-mode pool padded
+        to another size retires the graphs of the old size (it may shrink too: a refresh's random phases change the
+        count of candidate chunks, so near a power of two the padding can switch back and forth, each switch a new
+        capture), and the static tensors no graph reads any more."""
+        pool_rows = lambda k: dict(k[0]).get("pool_embed")  # noqa: E731
+        self.graphs = {k: g for k, g in self.graphs.items() if pool_rows(k) == pool_rows(key)}
+        wanted = {entry for k in [key, *self.graphs] for entry in k[0]}
+        self.static = {k: v for k, v in self.static.items() if k in wanted}
+        self.mempool = self.mempool if self.graphs else None  # a fresh pool once none is left in use
+        static = {}
+        for name, v in inputs.items():
+            static[name] = self.static.setdefault((name, tuple(v.shape)), [v.clone(), v])[0]
+        x = {k[2:]: v for k, v in static.items() if k.startswith("x.")}
+        static_plan = {k: plan[k] for k in ("mixed", "pool_ids") if k in plan}
+        static_plan.update({k: v for k, v in static.items() if "." not in k})
+        for part in ("m_batch", "pool"):
+            if part in plan:
+                static_plan[part] = {k.split(".", 1)[1]: v for k, v in static.items() if k.startswith(part + ".")}
+
+        def recorded():
+            out = update(self.agent, self.addressing, x, static_plan, self.args)
+            picks = out["picks"][1] if out["picks"] is not None else None
+            return list(out["metrics"]), torch.stack([v.detach().float() for v in out["metrics"].values()]), picks
+
+        replay, (names, vector, picks) = self.record(recorded)  # vector: (K,) the K metrics
+        for opt in list(self.agent.optimizers().values()) + ([self.addressing.opt] if self.addressing else []):
+            opt.zero_grad(set_to_none=True)  # the gradients the capture left in the pool are no one's to read
+        return types.SimpleNamespace(replay=replay, metric_names=names, metrics=vector, picks=picks)
+
+    def record(self, fn):
+        """fn captured as a CUDA graph (its kernels are recorded, not run): (replay, fn's outputs as static tensors).
+        One memory pool serves every graph (they never run at once); thread_local: the prefetch thread may pin."""
+        graph = torch.cuda.CUDAGraph()
+        if self.addressing is not None:  # the picks' own generator: each replay advances it as eager draws would
+            graph.register_generator_state(self.addressing.generator)
+        self.mempool = self.mempool or torch.cuda.graph_pool_handle()
+        with torch.cuda.graph(graph, pool=self.mempool, stream=self.stream, capture_error_mode="thread_local"):
+            outputs = fn()
+        return graph.replay, outputs
+
+    def recover(self):
+        """What a failed capture leaves behind (torch ~2.11): the capture stream current and the generators marked as
+        capturing, so that the next eager draw would fail. Back to the default stream and to plain generator states."""
+        torch.cuda.set_stream(torch.cuda.default_stream())
+        generators = [torch.cuda.default_generators[torch.cuda.current_device()]]
+        for generator in generators + ([self.addressing.generator] if self.addressing else []):
+            generator.graphsafe_set_state(generator.clone_state())
+        torch.cuda.synchronize()
+
+    def on_side_stream(self, fn):
+        """An eager update on the capture's stream (ordered after and before the default stream's work)."""
+        self.stream = self.stream or torch.cuda.Stream()
+        self.stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(self.stream):
+            out = fn()
+        torch.cuda.current_stream().wait_stream(self.stream)
+        return out
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UsageError(f"--device {name!r} is not a torch device (auto, cpu, cuda, cuda:N)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UsageError(f"--device {name}: CUDA is not available on this machine")
+    return device
+
+
+def native_bf16(device: torch.device, cpuinfo: str = "/proc/cpuinfo") -> Tuple[bool, str]:
+    """Whether the device multiplies bf16 matrices in hardware, and what was found. Without it (a CPU with AVX2
+    only) bf16 is emulated: measured 13x slower than fp32 at the paper's size."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported(), f"CUDA {torch.cuda.get_device_name(device)}"
+    try:
+        with open(cpuinfo) as f:
+            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
+    except OSError:  # not Linux: no flags to read, so bf16 counts as emulated
+        flags = []
+    found = [flag for flag in ("avx512_bf16", "amx_bf16") if flag in flags]
+    return bool(found), f"CPU {torch.backends.cpu.get_cpu_capability()}" + (f" with {'+'.join(found)}" if found else
+                                                                           ", no avx512_bf16 or amx_bf16")
+
+
+def check_precision(precision: str, device: torch.device) -> None:
+    """--precision bf16 only where bf16 is fast: elsewhere one line that says why, instead of a run 13x slower."""
+    native, found = native_bf16(device)
+    if precision == "bf16" and not native:
+        raise UsageError(f"--precision bf16: {found}, so bf16 would be emulated (about 13x slower than fp32 on such "
+                         f"a CPU); use --precision fp32")
+
+
+def first_update_notice(args: Args, device, env_steps: int, seconds: float) -> Optional[str]:
+    """On a CPU, for pixels at the paper's size (n x L >= 50 x 50, 64x64 images): what the first update took and
+    what the run's updates would take at that speed, and the one-minute alternative. None elsewhere."""
+    if torch.device(device).type != "cpu" or args.obs_type != "pixels" or args.batch_size * args.seq_len < 2500 \
+            or args.image_size < 64:
+        return None
+    episode_steps = episode_agent_steps(args) * args.action_repeat  # env steps of an episode
+    updates = max(args.total_steps - env_steps, 0) / episode_steps * args.updates_per_episode
+    days = updates * seconds / 86400
+    return (f"note: on this CPU one update at the paper's size took {seconds:.1f} s, so the {updates:,.0f} updates "
+            f"to --total-steps {args.total_steps:,} would take about "
+            + (f"{days:,.1f} days (a GPU job)" if days >= 2 else f"{24 * days:.1f} hours")
+            + ". A one-minute look on a CPU: python sweep.py sweeps/smoke.toml --workers 2, or --obs-type state")
+
+
+class UsageError(Exception):
+    """Bad input from the command line or from files, or a run that had to stop: printed as one line; exit code 2,
+    or `code` (1: non-finite losses; 128 + signal number: stopped by SIGINT/SIGTERM)."""
+
+    def __init__(self, message: str, code: int = 2):
+        super().__init__(message)
+        self.code = code
+
+
+def flag(name: str) -> str:
+    """An Args field as the command line spells it: address_lr -> --address-lr."""
+    return "--" + name.replace("_", "-")
+
+
+def given_flags(argv: list) -> set:
+    """The Args fields named on a command line (tyro spells them --foo-bar, --foo-bar=x, --no-foo-bar)."""
+    names = {f.name for f in dataclasses.fields(Args)}
+    given = {a[2:].split("=")[0].replace("-", "_") for a in argv if a.startswith("--")}
+    return {n if n in names else n[3:] for n in given if n in names or n[3:] in names}
+
+
+# the flags that may be given beside --resume (they change neither the networks nor what was collected); the other
+# flags come from the run's args.json
+RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
+                "plain_log", "log_interval_seconds", "precision", "channels_last", "prefetch", "cuda_graph")
+
+
+# flags added after runs were saved, with the value that was those runs' only behaviour: an args.json without one
+# resumes with this value; any other missing flag is refused
+ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": None, "address_weight_decay": 0.0,
+               "address_candidates_mode": "memory", "address_logit_scale": 1.0, "address_oversample_ends": False,
+               "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
+               "addressed_wm_rule": "rows", "cuda_graph": None,
+               "init": "torch", "eval_action": "mean"}
+
+
+def check_args(args: Args) -> None:
+    """Refuse bad input with a one-line message naming the flag (raised as UsageError, printed by main)."""
+    positive = ["total_steps", "eval_every", "action_repeat", "time_limit", "image_size", "deter_size", "stoch_size",
+                "hidden_size", "cnn_depth", "mlp_units", "horizon", "batch_size", "seq_len", "updates_per_episode",
+                "prefill_episodes", "prior_max_episodes", "address_batch", "address_units", "address_cnn_depth",
+                "address_refresh", "address_candidates", "address_plot_every", "model_lr", "actor_lr", "value_lr",
+                "address_lr", "grad_clip", "address_grad_clip", "address_logit_scale", "num_envs"]
+    for name in positive + ["obs_std", "address_adam_eps"]:  # the last two may be None (a default)
+        if getattr(args, name) is not None and not getattr(args, name) > 0:  # `not >`: NaN is refused too
+            raise UsageError(f"{flag(name)} must be > 0 (got {getattr(args, name)})")
+    for name in ["eval_episodes", "address_imagine_starts", "log_interval_seconds"]:
+        if not getattr(args, name) >= 0:  # NaN is refused too
+            raise UsageError(f"{flag(name)} must be >= 0 (got {getattr(args, name)})")
+    if not 0.0 <= args.address_weight_decay < 1.0:
+        raise UsageError(f"--address-weight-decay must be in [0, 1) (got {args.address_weight_decay})")
+    if not 0.0 < args.gamma <= 1.0 or not 0.0 <= args.return_lambda <= 1.0:
+        raise UsageError("--gamma must be in (0, 1] and --return-lambda in [0, 1]")
+    if not 0.0 <= args.address_prob <= 1.0 or not 0.0 <= args.current_fraction <= 1.0:
+        raise UsageError("--address-prob and --current-fraction must be in [0, 1]")
+    if args.method == "dreamer" and args.prior_dirs:
+        raise UsageError("--prior-dirs needs a method that uses prior data (uniform, vrama, rrama, rbrama)")
+    if args.seq_len < 2 or args.horizon < 2:
+        raise UsageError(f"--seq-len and --horizon must be >= 2 (got {args.seq_len}, {args.horizon})")
+    if conv_sizes(args.image_size)[-1] < 1:
+        raise UsageError(f"--image-size must be >= 46 for the four stride-2 convs (got {args.image_size})")
+    check_env_args(args)  # section 3: what this script's environments need
+    if not task_list(args):
+        raise UsageError("--task-sequence names no task")
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise UsageError("--track needs wandb: pip install wandb")
+    if episode_agent_steps(args) < args.seq_len:
+        raise UsageError(f"--seq-len {args.seq_len} is longer than an episode ({episode_agent_steps(args)} agent "
+                         f"steps); lower it or raise --time-limit")
+    for env_id in task_list(args):
+        make_env_spec(env_id)  # raises a UsageError naming --env-id
+    device = resolve_device(args.device)
+    check_precision(args.precision, device)
+    if args.cuda_graph and device.type != "cuda":
+        raise UsageError(f"--cuda-graph needs a CUDA device (--device {args.device} is {device})")
+
+
+def resolve_run(args: Args, given: set):
+    """The run's args and folder, checked, nothing written: a new folder's name, or --resume's folder with its saved
+    args and the RESUME_FLAGS given beside it (any other flag there is refused)."""
+    if not args.resume:
+        env_name = "__".join(t.replace("/", "_") for t in task_list(args)[:1]) + ("_seq" if args.task_sequence else "")
+        return args, os.path.join(args.run_dir, f"{env_name}__{args.exp_name}__{args.method}__{args.seed}__"
+                                                f"{int(time.time())}")
+    args_path = os.path.join(args.resume, "args.json")
+    if not os.path.isfile(args_path):
+        raise UsageError(f"--resume {args.resume}: no args.json there (not a run folder)")
+    refused = sorted(given - set(RESUME_FLAGS) - {"resume"})
+    if refused:
+        raise UsageError(f"--resume continues a run with its saved args: {', '.join(flag(n) for n in refused)} may "
+                         f"not be given with it (only {', '.join(flag(n) for n in RESUME_FLAGS)})")
+    try:
+        with open(args_path) as f:
+            saved = {**ADDED_FLAGS, **json.load(f)}
+        missing = sorted(flag(f.name) for f in dataclasses.fields(Args) if f.name not in saved)
+        if missing:  # a default filled in here could differ from what the run was trained with
+            raise UsageError(f"saved by an older version of this script (no {', '.join(missing)}); resume it with that "
+                             f"version")
+        fields = {f.name: saved[f.name] for f in dataclasses.fields(Args)}  # flags since removed are dropped
+        # --cuda-graph not given: the default of the device resumed on (graphs or not, the update's math is the same)
+        given_now = {"cuda_graph": None, **{k: getattr(args, k) for k in given & set(RESUME_FLAGS)}}
+        resumed = dataclasses.replace(Args(**fields), resume=args.resume, **given_now)
+        check_args(resumed)
+    except (ValueError, TypeError, AttributeError, UsageError) as e:  # JSONDecodeError is a ValueError
+        raise UsageError(f"{args_path}: {e}") from None
+    return resumed, args.resume
+
+
+def open_run(args: Args, run_path: str, rewrite_args: bool):
+    """Create (or reopen) the run folder and lock it for this process (the lock goes with the process, even on
+    kill -9): a second writer gets one line. Writes args.json for a new run, or a resumed one given RESUME_FLAGS."""
+    try:
+        os.makedirs(run_path, exist_ok=True)
+        lock = open(os.path.join(run_path, ".lock"), "a")
+    except OSError as e:
+        raise UsageError(f"{'--resume' if args.resume else '--run-dir'}: cannot write {run_path} ({e.strerror})") \
+            from None
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        raise UsageError(f"{run_path}: another process is writing this run folder (it holds its .lock)") from None
+    if rewrite_args or not args.resume:
+        path = os.path.join(run_path, "args.json")
+        with open(path + ".tmp", "w") as f:
+            json.dump(dataclasses.asdict(dataclasses.replace(args, resume=None)), f, indent=2)
+        os.replace(path + ".tmp", path)
+    return lock
+
+
+STOP = {"signal": None, "run_path": None}  # set by SIGINT/SIGTERM: the loops stop at their next safe point
+
+
+def request_stop(signum, frame):
+    """SIGINT or SIGTERM (what clusters send before preemption): stop after the current update or env step, the run
+    folder holding only complete episodes and a checkpoint consistent with them; a second signal stops at once."""
+    if STOP["signal"] is not None:
+        raise KeyboardInterrupt
+    STOP["signal"] = signum
+
+
+def resume_hint() -> str:
+    run_path = STOP["run_path"]
+    return f"; continue with: python {os.path.basename(__file__)} --resume {run_path}" if run_path else ""
+
+
+def check_stop():
+    if STOP["signal"] is not None:
+        raise UsageError(f"stopped by {signal.Signals(STOP['signal']).name}{resume_hint()}", 128 + STOP["signal"])
+
+
+def checked_args(args: Args) -> dict:
+    """What a checkpoint must have been saved with (as JSON has it): all args but those --resume may change."""
+    saved = json.loads(json.dumps(dataclasses.asdict(args)))
+    return {k: v for k, v in saved.items() if k not in RESUME_FLAGS + ("resume", "run_dir")}
+
+
+def write_checkpoint(path: str, payload: dict):
+    """Atomic like the episodes (a temp file, then a rename); the one before stays as PATH.prev until the new one is
+    in place, for a damaged newest file to fall back to."""
+    torch.save(payload, path + ".tmp")
+    if os.path.exists(path):
+        os.replace(path, path + ".prev")
+    os.replace(path + ".tmp", path)
+
+
+def read_checkpoint(path: str, args: Args) -> Optional[dict]:
+    """The newest loadable of PATH and PATH.prev (on the CPU; None when neither exists), saying so when it falls
+    back; one line naming the file when neither loads or when it was saved with other args than args.json's."""
+    unreadable = []
+    for candidate in (path, path + ".prev"):
+        if not os.path.exists(candidate):
+            continue
+        try:
+            payload = torch.load(candidate, map_location="cpu", weights_only=False)
+            saved = payload.get("args", {})  # checkpoints written before it was stored: shapes are checked on load
+        except Exception as e:
+            unreadable.append(f"{candidate}: not a readable checkpoint ({type(e).__name__}: {str(e)[:80]!r})")
+            continue
+        now = checked_args(args)
+        diff = [f"{k} {saved[k]!r} there, {now[k]!r} in args.json" for k in saved if k in now and saved[k] != now[k]]
+        if diff:
+            raise UsageError(f"{candidate} does not match args.json: " + "; ".join(diff))
+        if unreadable:
+            print(f"warning: {unreadable[0]}; falling back to {candidate}", flush=True)
+        return payload
+    if unreadable:
+        raise UsageError("; ".join(unreadable) + " (remove it to restart the networks from the episodes)")
+    return None
+
+
+def load_state(path: str, module, state_dict: dict):
+    try:
+        module.load_state_dict(state_dict)
+    except RuntimeError as e:  # torch gives a line per tensor: the first one names the mismatch
+        raise UsageError(f"{path} does not match args.json: {str(e).splitlines()[1].strip()[:200]}") from None
+
+
+def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
+    payload = {"agent": agent.state_dict(), "optimizers": {k: o.state_dict() for k, o in agent.optimizers().items()},
+               "state": state, "rng": {"python": random.getstate(), "numpy": np.random.get_state(),
+                                       "torch": torch.get_rng_state()}, "args": checked_args(args)}
+    write_checkpoint(path, payload)
+
+
+def load_optimizer(opt, saved: dict):
+    """An optimiser's saved state under this run's `capturable` (--cuda-graph may differ from the saving run's)."""
+    capturable = opt.param_groups[0]["capturable"]
+    opt.load_state_dict({**saved, "param_groups": [{**g, "capturable": capturable} for g in saved["param_groups"]]})
+
+
+def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
+    load_state(path, agent, payload["agent"])
+    for name, opt in agent.optimizers().items():
+        load_optimizer(opt, payload["optimizers"][name])
+    random.setstate(payload["rng"]["python"])
+    np.random.set_state(payload["rng"]["numpy"])
+    torch.set_rng_state(payload["rng"]["torch"])
+    return payload["state"]
+
+
+def save_checkpoints(task: Task):
+    """checkpoint.pt (agent, optimisers, state, RNG states) and address.pt (f_φ, its frozen copy, its optimiser)."""
+    save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, task.state, task.args)
+    if task.addressing is not None:
+        net, x_net, opt = task.addressing.net, task.addressing.x_net, task.addressing.opt
+        write_checkpoint(task.address_path, {"net": net.state_dict(), "x_net": x_net.state_dict(),
+                                             "opt": opt.state_dict(), "args": checked_args(task.args)})
+
+
+def check_finite(task: Task, rows: list, metrics: dict, done: int):
+    """One check per round (the sums carry any NaN or inf): the round is then neither saved nor logged, and the run
+    stops with a line naming the first bad metric and its update."""
+    if all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in task.agent.parameters()):
+        return
+    bad = [(i, k) for i, row in enumerate(rows) for k, v in row.items() if not v.isfinite()]
+    i, key = (bad or [(done - 1, "weights")])[0]
+    task.logger.log(task.env_steps, {"errors/non_finite_update": task.state["updates"] - done + i + 1})
+    raise UsageError(f"non-finite {key} at update {task.state['updates'] - done + i + 1}: stopped without saving "
+                     f"its round (is a learning rate too high?)", 1)
 
 
 if __name__ == "__main__":

@@ -18,8 +18,9 @@ def sections(script: str) -> dict:
 
 def test_shared_sections_are_identical():
     dmc, metaworld = sections("rama_dreamer.py"), sections("rama_metaworld.py")
-    assert sorted(dmc) == sorted(metaworld) == list(range(1, 10))
-    # 4. storage and replay, 5. networks, 6. losses, 7. Algorithm 2, 8. acting, logging, checkpoints, 9. the training
-    # loop: word for word (each script's expert collection, --collect-expert, lives in its section 3)
-    for number in (4, 5, 6, 7, 8, 9):
+    assert sorted(dmc) == sorted(metaworld) == list(range(1, 11))
+    # 4. storage and replay, 5. networks, 6. Dreamer's losses, 7. Algorithm 2, 8. acting and logging, 9. the training
+    # loop, 10. speed and reliability: word for word (each script's expert collection and its own flag checks,
+    # check_env_args, live in its section 3)
+    for number in range(4, 11):
         assert dmc[number] == metaworld[number], f"section {number} differs between the two scripts"
