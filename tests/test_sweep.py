@@ -169,7 +169,7 @@ prior = "prior"
     assert "task__uniform__s2 [later]" in out and "task__dreamer__s2 [new]" in out
     assert "prior__dreamer__s3 [done]" in out
     refused = run_script("sweep.py", spec, "--dry-run", "--max-runs", "0", check=False)
-    assert refused.returncode == 2 and "--max-runs must be >= 1 (got 0)" in refused.stderr
+    assert refused.returncode == 2 and refused.stderr == "error: --max-runs: must be >= 1 (got 0)\n"
 
 
 def test_kept_prior_episodes_stand_in_for_a_prior_run_folder_on_another_machine(tmp_path):
