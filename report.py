@@ -28,11 +28,12 @@ The number per run is the paper's: the average training-episode return over the 
   the mean. The bootstrap is seeded, so the report is the same on every run of this command.
 A second table answers "does it beat Dreamer, and uniform mixing?": per task, each method's probability of
 improvement P(X > Y) over each (and over the --against methods), with its 95% bootstrap CI and the exact two-sided
-rank test's p (Mann-Whitney: with 3-5 seeds, the test to read). Runs stopped before their --total-steps are marked
-unfinished in the tables; a run with a non-finite value is left out, with a warning. A third says what the
-prior-data methods mixed into their batches (from the runs' addressing/ logs): the share of other tasks' chunks,
-the returns and reward sums of what was picked against what could have been, how peaked q is, and what the bandit
-objective gained.
+rank test's p (Mann-Whitney: with 3-5 seeds, the test to read). A third gives the differences of means against the
+same columns (and a preset's row against the same method without the preset), each with a 95% Welch t interval;
+they are printed too, one line each. Runs stopped before their --total-steps are marked unfinished in the tables; a
+run with a non-finite value is left out, with a warning. A fourth says what the prior-data methods mixed into their
+batches (from the runs' addressing/ logs): the share of other tasks' chunks, the returns and reward sums of what was
+picked against what could have been, how peaked q is, and what the bandit objective gained.
 scores.png shows every seed's number as a dot beside its method's mean ± s.e. The curves (curves.png) show, per
 task, one line per method. Each run's returns are averaged in --bins equal bins of environment steps; the line is
 the mean over seeds of those bin averages, and the band is ± one s.e.
@@ -61,6 +62,27 @@ import matplotlib.pyplot as plt  # noqa: E402
 METHOD_NAMES = {"dreamer": "Dreamer", "uniform": "No addressing (uniform)", "rrama": "RRAMa", "rbrama": "RbRAMa",
                 "vrama": "VRAMa"}  # the paper's row names, in its order
 PRESET_NAMES = {"authors-code": "authors' code"}  # a run made with --preset P is method "<method>@P"
+
+
+def fail(message: str):
+    """A bad input: one line on stderr, `error: ...`, and exit code 2, before anything is written."""
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse's errors as one line, `error: --flag: ...`, exit code 2, as every other bad input here is reported:
+    argparse's own usage block would bury the line that matters."""
+
+    def error(self, message: str):
+        flags = [o for a in self._actions for o in a.option_strings if o.startswith("--") and o != "--help"]
+        named = re.match(r"argument (\S+?)(?:/\S+)?: (.*)", message, re.S)  # a bad value, a bad choice, no value
+        if named:
+            message = f"{named.group(1)}: {named.group(2)}"
+        elif message.startswith("unrecognized arguments: "):
+            first = message.split(": ", 1)[1].split()[0]
+            message = f"{first}: unknown flag (known: {', '.join(flags)})"
+        fail(message)
 
 
 def method_name(method: str) -> str:
@@ -200,6 +222,20 @@ def rank_test(scores_x, scores_y) -> float:
     return float(mannwhitneyu(scores_x, scores_y, alternative="two-sided", method=method).pvalue)
 
 
+def welch_ci(scores_x, scores_y) -> tuple:
+    """mean(X) − mean(Y) with its 95% Welch t confidence interval (unequal variances; the Welch-Satterthwaite
+    degrees of freedom): (difference, low, high). The bounds are nan with fewer than 2 runs on a side, or when
+    neither side varies."""
+    from scipy.stats import ttest_ind
+
+    x, y = np.asarray(scores_x, dtype=float), np.asarray(scores_y, dtype=float)
+    difference = float(x.mean() - y.mean())
+    if min(len(x), len(y)) < 2 or x.var() + y.var() == 0:
+        return difference, float("nan"), float("nan")
+    interval = ttest_ind(x, y, equal_var=False).confidence_interval(0.95)
+    return difference, float(interval.low), float(interval.high)
+
+
 def method_order(methods) -> list:
     """The paper's rows in its order, then each preset's in that order, then any other."""
     presets = sorted({m.partition("@")[2] for m in methods} - {""})
@@ -216,7 +252,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
                  only_tasks: tuple = (), same_tasks: dict = None, only_methods: tuple = (), title: str = None):
     runs, same_tasks = load_experiment(folder, key), same_tasks or {}  # same_tasks: {cell: the task it counts as}
     if not runs:
-        sys.exit(f"error: {folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
+        fail(f"{folder}: no run folders with {key} (expected <run>/args.json and metrics.jsonl)")
     if same_tasks:  # --same-task: a preset's own cells (walk_authors) are columns of the task they ran (walk)
         found = sorted({r["task"] for r in runs})
         for cell in (a for a in same_tasks if a not in found):  # a grid's later cell may not have run yet
@@ -227,13 +263,13 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
         for r in runs:  # a merged run must be a row of its own (its method carries the preset): never two seeds in one
             clash = seen.setdefault((r["task"], r["method"], r["seed"]), r["name"])
             if clash != r["name"]:
-                sys.exit(f"error: --same-task: {clash} and {r['name']} would be the same run of {r['task']} "
+                fail(f"--same-task: {clash} and {r['name']} would be the same run of {r['task']} "
                          f"({r['method']}, seed {r['seed']}); merge only cells whose methods differ (another --preset)")
     if only_tasks:  # --tasks: the tables' columns only (an experiment also keeps its pilots and its Ms' runs)
         found = sorted({r["task"] for r in runs})
         runs = [r for r in runs if any(fnmatch.fnmatchcase(r["task"], pattern) for pattern in only_tasks)]
         if not runs:
-            sys.exit(f"error: --tasks {' '.join(only_tasks)}: no such task in {folder} (there: {', '.join(found)})")
+            fail(f"--tasks {' '.join(only_tasks)}: no such task in {folder} (there: {', '.join(found)})")
     experiment = os.path.basename(os.path.normpath(folder))
     tasks = sorted({r["task"] for r in runs})
     for other in beside:  # --beside: another experiment's runs of the same tasks join the tables (--same-task too)
@@ -245,7 +281,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     def refuse_missing(flag: str, named: tuple):
         missing = [m for m in named if m not in methods]
         if missing:
-            sys.exit(f"error: {flag} {' '.join(missing)}: no such method in {folder} (there: {', '.join(methods)})")
+            fail(f"{flag} {' '.join(missing)}: no such method in {folder} (there: {', '.join(methods)})")
 
     refuse_missing("--methods", only_methods)
     if only_methods:  # the tables' rows and the curves' lines only, in the paper's order
@@ -287,6 +323,8 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
                   "averages hold fewer, mostly earlier episodes."]
     lines += ["", "Each seed's run average, and the mean ± s.e. over seeds:", "", "![scores per run](scores.png)"]
     lines += improvement_table(scores, tasks, methods, reps, seed, against)
+    differences = welch_differences(scores, tasks, methods, against)
+    lines += difference_table(differences, tasks, methods, decimals, against)
     lines += diagnostics_table(runs, tasks, methods, decimals)
     lines += reference_table(runs, tasks, methods, reference, decimals) if reference else []
     lines += levels_table(runs, tasks, methods, key, levels, decimals) if levels else []
@@ -303,40 +341,115 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
                 os.path.join(out, figure), reference, levels)
     plot_scores(scores, tasks, methods, f"{experiment}: the average of {key} per run", key,
                 os.path.join(out, "scores.png"))
+    for task, method, column, cell, ref in differences:  # the intervals the docs quote, on the terminal too
+        print(f"{task}: {method_name(method)} − {method_name(ref)}{' (paper text)' if column == PAPER_TEXT else ''}: "
+              f"{difference_text(cell, decimals)} (Welch 95%)")
     print(f"wrote {os.path.join(out, 'report.md')}, {os.path.join(out, figure)} and {os.path.join(out, 'scores.png')}")
+
+
+def comparison_references(methods: list, against: tuple = ()) -> list:
+    """The columns every row is compared with: Dreamer, uniform mixing, uniform mixing under each preset (the same
+    configuration as the preset's rows), and the methods given with --against."""
+    references = [m for m in ["dreamer", "uniform"] + [m for m in methods if m.startswith("uniform@")] if m in methods]
+    return references + [m for m in against if m not in references]
+
+
+PAPER_TEXT = "paper text"  # the column of a preset's row against the same method without the preset
+
+
+def comparison_columns(methods: list, against: tuple = ()) -> list:
+    """comparison_references, then PAPER_TEXT when some preset's method also ran without the preset (and is not a
+    column already: uniform mixing's is its own)."""
+    references = comparison_references(methods, against)
+    return references + [PAPER_TEXT] * any(compared_with(m, PAPER_TEXT, references) in methods for m in methods)
+
+
+def compared_with(method: str, column: str, references: list):
+    """The method a row is compared with in a column: the column's method, or for PAPER_TEXT the row's method without
+    its preset (None for a row without a preset, or when that method is a column of its own)."""
+    if column != PAPER_TEXT:
+        return column
+    base = method.partition("@")[0]
+    return base if base != method and base not in references else None
+
+
+def comparisons(scores: dict, tasks: list, methods: list, against: tuple = ()):
+    """(task, method, column, scores of the row, scores of the method compared with) for every cell of the comparison
+    tables that has runs on both sides."""
+    columns = comparison_columns(methods, against)
+    for task in tasks:
+        for method in methods:
+            for column in columns:
+                ref = compared_with(method, column, columns)
+                x, y = scores.get((task, method)), scores.get((task, ref))
+                if method != ref and x and y:
+                    yield task, method, column, x, y, ref
+
+
+def comparison_table(cells: dict, tasks: list, methods: list, columns: list, name, intro: str) -> list:
+    """Markdown lines of a comparison table: a row per method, a column per task and comparison column; cells:
+    (task, method, column) -> its text ("–" where absent); name(column) -> the column's header."""
+    header = ["method"] + [f"{t}: {name(c)}" for t in tasks for c in columns]
+    lines = ["", intro, "", "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    for method in methods:
+        lines.append("| " + " | ".join([method_name(method)] + [cells.get((t, method, c), "–") for t in tasks
+                                                                 for c in columns]) + " |")
+    return lines
 
 
 def improvement_table(scores: dict, tasks: list, methods: list, reps: int, seed: int, against: tuple = ()) -> list:
     """Markdown lines: per task, each method's probability of improvement over Dreamer and over uniform mixing (and
-    over the --against methods), with its bootstrap CI and the rank test's p. scores: (task, method) -> the run
-    averages of its seeds."""
-    # Dreamer, uniform mixing, uniform mixing under each preset (the same configuration as the preset's rows), and
-    # the methods given with --against
-    references = [m for m in ["dreamer", "uniform"] + [m for m in methods if m.startswith("uniform@")] if m in methods]
-    references += [m for m in against if m not in references]
-    if not references or len(methods) < 2:
+    over the --against methods, and a preset's over the same method without it), with its bootstrap CI and the rank
+    test's p. scores: (task, method) -> the run averages of its seeds."""
+    columns = comparison_columns(methods, against)
+    if not columns or len(methods) < 2:
         return []
-    header = ["method"] + [f"{t}: P(> {method_name(ref)})" for t in tasks for ref in references]
-    lines = ["", "Does a method beat Dreamer, or uniform mixing? P(X > Y) is the probability that a run of the row's "
+    cells = {}
+    for task, method, column, x, y, _ in comparisons(scores, tasks, methods, against):
+        p, low, high = improvement_ci(x, y, reps, seed)  # probabilities: 2 decimals, whatever --decimals
+        cells[(task, method, column)] = f"{p:.2f} [{low:.2f}, {high:.2f}], p {rank_test(x, y):.2g}"
+    intro = ("Does a method beat Dreamer, or uniform mixing? P(X > Y) is the probability that a run of the row's "
              "method scores higher than a run of the column's (ties count half; rliable's probability of "
              f"improvement), with its 95% stratified-bootstrap CI (percentile, {reps} resamples, seed {seed}), and "
              "p, the two-sided Mann-Whitney rank test's (exact). 0.5 is no difference. Read p, not the CI, as the "
              "test: over so few runs the bootstrap CI is too narrow (when no run of one method scores below a run of "
              "the other, every resample gives the same P, so the CI is [1.00, 1.00] even for 2 runs against 2). The "
-             "smallest possible p is 0.10 for 3 runs against 3, 0.029 for 4 against 4, 0.008 for 5 against 5.", "",
-             "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    for method in methods:
-        row = [method_name(method)]
-        for task in tasks:
-            for ref in references:
-                x, y = scores.get((task, method)), scores.get((task, ref))
-                if method == ref or not x or not y:
-                    row.append("–")
-                    continue
-                p, low, high = improvement_ci(x, y, reps, seed)  # probabilities: 2 decimals, whatever --decimals
-                row.append(f"{p:.2f} [{low:.2f}, {high:.2f}], p {rank_test(x, y):.2g}")
-        lines.append("| " + " | ".join(row) + " |")
-    return lines
+             "smallest possible p is 0.10 for 3 runs against 3, 0.029 for 4 against 4, 0.008 for 5 against 5."
+             + PAPER_TEXT_NOTE * (PAPER_TEXT in columns))
+    return comparison_table(cells, tasks, methods, columns, lambda c: f"P(> {column_name(c)})", intro)
+
+
+PAPER_TEXT_NOTE = (" *paper text*: a preset's row against the same method without the preset (uniform mixing's is "
+                   "its uniform column).")
+
+
+def column_name(column: str) -> str:
+    return column if column == PAPER_TEXT else method_name(column)
+
+
+def welch_differences(scores: dict, tasks: list, methods: list, against: tuple = ()) -> list:
+    """Every difference of means the report gives, one per cell of the comparison tables: (task, method, column,
+    (difference, low, high) with its Welch 95% CI, the method compared with)."""
+    return [(task, method, column, welch_ci(x, y), ref)
+            for task, method, column, x, y, ref in comparisons(scores, tasks, methods, against)]
+
+
+def difference_table(differences: list, tasks: list, methods: list, decimals: int, against: tuple = ()) -> list:
+    """Markdown lines: per task, each method's mean minus each comparison column's, with its Welch 95% CI."""
+    columns = comparison_columns(methods, against)
+    if not differences:
+        return []
+    cells = {(task, method, column): difference_text(cell, decimals) for task, method, column, cell, _ in differences}
+    intro = ("Differences of means: the row's mean over seeds minus the column's, with its 95% Welch t confidence "
+             "interval (unequal variances, Welch-Satterthwaite degrees of freedom; – bounds with fewer than 2 runs on "
+             "a side)." + PAPER_TEXT_NOTE * (PAPER_TEXT in columns))
+    return comparison_table(cells, tasks, methods, columns, lambda c: f"− {column_name(c)}", intro)
+
+
+def difference_text(cell: tuple, decimals: int) -> str:
+    """(difference, low, high) -> "+2.0 [-1.5, 5.5]"."""
+    difference, low, high = cell
+    return f"{difference:+,.{decimals}f} [{fmt(low, decimals)}, {fmt(high, decimals)}]"
 
 
 def run_diagnostics(means: dict, current_task: str) -> dict:
@@ -575,7 +688,7 @@ def plot_runs(run_paths: list, out: str, title, keys=None):
     for run_path in run_paths:
         metrics_path = os.path.join(run_path, "metrics.jsonl")
         if not os.path.isfile(metrics_path):
-            sys.exit(f"error: {run_path}: no metrics.jsonl (not a run folder)")
+            fail(f"{run_path}: no metrics.jsonl (not a run folder)")
         runs.append((metrics_path, os.path.basename(os.path.normpath(run_path))))
     for ax, key in zip(axes.flat, keys or [None]):
         drawn = 0
@@ -589,7 +702,7 @@ def plot_runs(run_paths: list, out: str, title, keys=None):
                     ax.plot(steps, values, label=series_label[:70], **style)
                     drawn += 1
         if key and not drawn:
-            sys.exit(f"error: --key {key}: no run's metrics.jsonl logs it")
+            fail(f"--key {key}: no run's metrics.jsonl logs it")
         ax.set_xlabel("environment steps")
         ax.set_ylabel(metric_label(key) if key else "episode return")
         ax.grid(alpha=0.3)
@@ -632,7 +745,7 @@ def addressing_figure(probs: np.ndarray, tasks: list, returns: np.ndarray, title
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", nargs="*", help="experiment folders (results/<experiment>), or results/ itself")
     parser.add_argument("--out", default=None, help="where to write (default: each experiment's folder); "
                         "with --runs, the PNG to write (default curve.png)")
@@ -667,6 +780,9 @@ def main():
                              "rows stay apart by their method's preset, beside the same task's Dreamer and uniform; "
                              "in --beside folders too)")
     args = parser.parse_args()
+    for name, least in (("reps", 1), ("bins", 1), ("decimals", 0)):  # checked before anything is written
+        if getattr(args, name) < least:
+            parser.error(f"argument --{name}: must be >= {least} (got {getattr(args, name)})")
     bad = [pair for pair in args.same_task if not re.fullmatch(r"[^=\s]+=[^=\s]+", pair)]
     if bad:
         parser.error(f"--same-task {bad[0]}: give CELL=TASK, e.g. walk_authors=walk")
@@ -697,9 +813,9 @@ def main():
                 reference = json.load(f)
             assert {"name", "key", "checkpoints", "source", "tasks"} <= set(reference)
         except (OSError, ValueError, AssertionError) as e:
-            sys.exit(f"error: --reference {args.reference}: not a reference file ({type(e).__name__})")
+            fail(f"--reference {args.reference}: not a reference file ({type(e).__name__})")
         if reference["key"] != args.key:
-            sys.exit(f"error: --reference {args.reference} holds {reference['key']}: give --key {reference['key']}")
+            fail(f"--reference {args.reference} holds {reference['key']}: give --key {reference['key']}")
         options += f" --reference {args.reference}"
     levels = None
     if args.levels:
@@ -709,14 +825,14 @@ def main():
             assert isinstance(levels, dict) and all(isinstance(v, dict) and all(isinstance(p, dict) for p in v.values())
                                                     for v in levels.values())  # task -> policy -> {metric: value}
         except (OSError, ValueError, AssertionError) as e:
-            sys.exit(f"error: --levels {args.levels}: not a levels file ({type(e).__name__})")
+            fail(f"--levels {args.levels}: not a levels file ({type(e).__name__})")
         options += f" --levels {args.levels}"
     for folder in args.beside:
         if not glob.glob(os.path.join(folder, "*", "args.json")):
-            sys.exit(f"error: --beside {folder}: holds no run folders (<run>/args.json)")
+            fail(f"--beside {folder}: holds no run folders (<run>/args.json)")
     for folder in args.folders:
         if not os.path.isdir(folder):
-            sys.exit(f"error: {folder}: no such folder")
+            fail(f"{folder}: no such folder")
         # results/ itself holds experiments (folders of run folders) rather than run folders; a run folder kept there
         # beside them (results/gpu_pixel_cartpole) is left out, with a line saying so
         runs = glob.glob(os.path.join(folder, "*", "args.json"))
@@ -727,12 +843,12 @@ def main():
                   + " ".join(sorted(os.path.dirname(p) for p in runs)), file=sys.stderr)
         experiments = experiments or ([folder] if runs else [])
         if not experiments:
-            sys.exit(f"error: {folder}: holds no run folders (<run>/args.json) and no experiments")
+            fail(f"{folder}: holds no run folders (<run>/args.json) and no experiments")
         # --against names one experiment's methods and --tasks its tasks: refused before any report is written
         one_experiment = [f"--{name.replace('_', '-')}" for name in ("against", "tasks", "same_task", "methods")
                           if getattr(args, name)]
         if one_experiment and (len(experiments) > 1 or len(args.folders) > 1):
-            sys.exit(f"error: {' and '.join(one_experiment)}: give one experiment folder (it names that experiment's "
+            fail(f"{' and '.join(one_experiment)}: give one experiment folder (it names that experiment's "
                      f"methods or tasks)")
         for experiment in experiments:
             out = args.out if args.out and len(experiments) == 1 else \

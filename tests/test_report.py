@@ -494,3 +494,76 @@ def test_same_task_puts_a_presets_cell_beside_the_task_it_ran(tmp_path):
     shutil.rmtree(exp / "walk_other__uniform__s1")  # the clashing cell above, out of the way
     run_script("report.py", str(exp), "--same-task", "walk_authors=walk", "--beside", str(other), "--reps", "50")
     assert "| other/walk_authors__rrama__s1 | walk |" in (exp / "report.md").read_text()
+
+
+def test_welch_interval_by_hand():
+    """mean(X) − mean(Y) with its 95% Welch t interval: d ± t(0.975, ν) · se, se² = s_x²/n_x + s_y²/n_y,
+    ν = se⁴ / ((s_x²/n_x)² / (n_x − 1) + (s_y²/n_y)² / (n_y − 1))."""
+    # [5, 6, 7] against [1, 2, 3]: d = 4; each sample variance 1, se² = 1/3 + 1/3 = 2/3;
+    # ν = (4/9) / (2 · (1/9) / 2) = 4; t(0.975, 4) = 2.776445 (a t table), so 4 ± 2.776445 · 0.816497 = 4 ± 2.266958
+    assert report.welch_ci([5, 6, 7], [1, 2, 3]) == pytest.approx((4.0, 1.733042, 6.266958), abs=1e-6)
+    assert report.welch_ci([1, 2, 3], [5, 6, 7]) == pytest.approx((-4.0, -6.266958, -1.733042), abs=1e-6)
+    # unequal variances and sizes: [4, 5, 9] (mean 6, s² = 14 / 2 = 7) against [1, 2, 3, 10] (mean 4, s² = 50 / 3):
+    # se² = 7/3 + 50/12 = 6.5; ν = 6.5² / ((7/3)² / 2 + (50/12)² / 3) = 42.25 / 8.509259 = 4.965180, between the t
+    # table's ν = 4 (2.7764) and ν = 5 (2.5706): t(0.975, 4.965180) = 2.576014 (scipy.stats.t), 2 ± 2.576014 · 2.549510
+    from scipy.stats import t
+
+    assert t.ppf(0.975, 4.965180) == pytest.approx(2.576014, abs=1e-6) and 2.5706 < 2.576014 < 2.7764
+    half = 2.576014 * np.sqrt(6.5)
+    assert report.welch_ci([4, 5, 9], [1, 2, 3, 10]) == pytest.approx((2.0, 2.0 - half, 2.0 + half), abs=1e-4)
+    # one run on a side, or no spread on either: the difference alone
+    d, low, high = report.welch_ci([7.0], [1, 2, 3])
+    assert d == 5.0 and np.isnan(low) and np.isnan(high)
+    assert np.isnan(report.welch_ci([2.0, 2.0], [1.0, 1.0])[1])
+
+
+@pytest.mark.slow
+def test_report_gives_and_prints_the_welch_differences(results, tmp_path):
+    """The third table: each row's mean minus Dreamer's (and a preset's row minus the same method's under the paper's
+    text), with the Welch interval above; report.py prints each difference as one line."""
+    half = 2.576014 * np.sqrt(6.5)  # walk, RRAMa [4, 5, 9] against Dreamer [1, 2, 3, 10]: see the test above
+    proc = run_script("report.py", str(results), "--reps", "50", "--decimals", "3")
+    text = (results / "report.md").read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| method") and "− Dreamer" in line)
+    columns = [c.strip() for c in header.strip("|").split("|")]
+    rrama = next(line for line in text.splitlines() if line.startswith("| RRAMa |") and "+2.000 [" in line)
+    cell = [c.strip() for c in rrama.strip("|").split("|")][columns.index("walk: − Dreamer")]
+    assert cell == f"+2.000 [{2 - half:.3f}, {2 + half:.3f}]"
+    assert f"walk: RRAMa − Dreamer: +2.000 [{2 - half:.3f}, {2 + half:.3f}] (Welch 95%)" in proc.stdout
+    # --preset rows: against uniform mixing and against the same method without the preset ("paper text")
+    exp = tmp_path / "presets" / "exp"
+    for seed, (paper, authors) in enumerate([(1.0, 5.0), (2.0, 6.0), (3.0, 7.0)], start=1):
+        write_run(exp, f"walk__rrama__s{seed}", [paper], {"env_id": "dmc/x", "method": "rrama", "seed": seed})
+        write_run(exp, f"walk__uniform__s{seed}", [paper], {"env_id": "dmc/x", "method": "uniform", "seed": seed})
+        write_run(exp, f"walk_authors__rrama__s{seed}", [authors],
+                  {"env_id": "dmc/x", "method": "rrama", "seed": seed, "preset": "authors-code"})
+    proc = run_script("report.py", str(exp), "--same-task", "walk_authors=walk", "--reps", "50")
+    assert "walk: RRAMa, authors' code − RRAMa (paper text): +4.0 [1.7, 6.3] (Welch 95%)" in proc.stdout
+    text = (exp / "report.md").read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| method") and "− paper text" in line)
+    row = next(line for line in text.splitlines() if line.startswith("| RRAMa, authors' code |") and "[1.7" in line)
+    cells = lambda line: [c.strip() for c in line.strip("|").split("|")]  # noqa: E731
+    assert dict(zip(cells(header), cells(row))) == {"method": "RRAMa, authors' code",
+                                                    "walk: − No addressing (uniform)": "+4.0 [1.7, 6.3]",
+                                                    "walk: − paper text": "+4.0 [1.7, 6.3]"}
+    # the P(X > Y) table has the same columns: [5, 6, 7] above [1, 2, 3], p = 2 / C(6, 3) = 0.1
+    header = next(line for line in text.splitlines() if line.startswith("| method") and "P(> paper text)" in line)
+    row = next(line for line in text.splitlines() if line.startswith("| RRAMa, authors' code |") and "p 0.1" in line)
+    assert dict(zip(cells(header), cells(row)))["walk: P(> paper text)"] == "1.00 [1.00, 1.00], p 0.1"
+
+
+@pytest.mark.slow
+def test_bad_command_line_input_is_one_line_and_exit_2(results):
+    """A bad value, an unknown flag, a missing value: one `error: --flag: ...` line on stderr, exit code 2, and no
+    report written."""
+    cases = {("--reps", "abc"): "error: --reps: invalid int value: 'abc'",
+             ("--bins", "0"): "error: --bins: must be >= 1 (got 0)",
+             ("--decimals", "-1"): "error: --decimals: must be >= 0 (got -1)",
+             ("--no-such-flag",): "error: --no-such-flag: unknown flag (known: --out, --runs, ",
+             ("--out",): "error: --out: expected one argument",
+             ("--same-task", "walk"): "error: --same-task walk: give CELL=TASK"}
+    for flags, line in cases.items():
+        proc = run_script("report.py", str(results), *flags, check=False)
+        assert proc.returncode == 2, (flags, proc.stderr)
+        assert proc.stderr.startswith(line) and len(proc.stderr.strip().splitlines()) == 1, (flags, proc.stderr)
+        assert not (results / "report.md").exists() and proc.stdout == ""
