@@ -33,6 +33,7 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering; must be set before mujoco is imported
 
+import contextlib
 import copy
 import dataclasses
 import fcntl
@@ -47,9 +48,8 @@ import signal
 import sys
 import time
 import types
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Literal, Optional, Tuple
+from typing import Any, Literal, Optional, Tuple
 
 import gymnasium
 import numpy as np
@@ -67,59 +67,19 @@ td.Distribution.set_default_validate_args(False)  # argument checks cost Python 
 # ----------------------------------------------------------------------------------------------------------
 @dataclass
 class Args:
-    # Experiment
-    exp_name: str = os.path.basename(__file__)[: -len(".py")]
-    """this experiment's name (part of the run folder's name)"""
-    env_id: str = "metaworld/push"
-    """the environment: `metaworld/<task>` (push, peg-insert-side, sweep-into, dial-turn, drawer-close, any v3 name)"""
+    # The run: method, environment, seed and budget
     method: Literal["dreamer", "uniform", "vrama", "rrama", "rbrama"] = "dreamer"
     """dreamer (no prior data), uniform (the paper's "No addressing"), vrama (Eq. 1), rrama (Eq. 2), rbrama (Eq. 3)"""
+    env_id: str = "metaworld/push"
+    """the environment: `metaworld/<task>` (push, peg-insert-side, sweep-into, dial-turn, drawer-close, any v3 name)"""
     task_sequence: Optional[str] = None
     """Algorithm 1: tasks trained in order in one run, e.g. `walker-stand,walker-walk`; overrides --env-id"""
     seed: int = 1
     """seed of python, numpy, torch, the environment and every sampler"""
-    preset: Optional[Literal["authors-code"]] = None
-    """`authors-code`: the authors' code's values of the flags in PRESETS; given flags win
-    (docs/deviations.md#authors-preset)"""
-    device: str = "auto"
-    """`auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ..."""
     total_steps: int = 1_000_000
     """environment steps to train for (counting repeated actions, as the paper does)"""
     obs_type: Literal["pixels", "state"] = "pixels"
     """`pixels` (64x64 RGB, the paper) or `state` (the suite's proprioceptive vector, MLP encoder; cheap)"""
-    run_dir: str = "runs"
-    """the folder that holds run folders"""
-    resume: Optional[str] = None
-    """a run folder to continue with its args.json (only RESUME_FLAGS beside it)"""
-    track: bool = False
-    """log to Weights & Biases as well (needs `pip install wandb`)"""
-    wandb_project: str = "rama"
-    """the W&B project"""
-    eval_every: int = 10_000
-    """run evaluation episodes (no exploration noise) every this many environment steps, and at the last step"""
-    eval_episodes: int = 1
-    """evaluation episodes per evaluation"""
-    capture_video: bool = False
-    """save GIFs of eval episodes and (pixels) of open-loop world-model predictions under `videos/`"""
-    plain_log: bool = False
-    """print plain lines instead of progress bars (always so without a terminal on stderr)"""
-    log_interval_seconds: float = 60.0
-    """plain-log mode: a progress line at least this often inside a round of updates (0: after every update)"""
-
-    # Speed (none of these changes what is learned, up to floating-point rounding)
-    precision: Literal["fp32", "bf16"] = "fp32"
-    """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
-    channels_last: bool = True
-    """conv weights and activations in channels-last layout (10% faster updates on CPU; no change on an H100)"""
-    prefetch: bool = True
-    """sample (and pin) the next batch in a background thread while the current update trains"""
-    num_envs: int = 1
-    """environments collecting in parallel (subprocesses via gymnasium's AsyncVectorEnv when > 1)"""
-    cuda_graph: Optional[bool] = None
-    """capture each update as CUDA graphs and replay them (GraphedUpdate; eager if a capture fails). None: on when
-    the device is CUDA (2.6-6x faster updates on an H100, the same math), off elsewhere; True on a CPU is refused"""
-
-    # Environment
     action_repeat: int = 1
     """each action is repeated this many environment steps (Meta-World: the authors' 1, not Dreamer's 2;
     docs/deviations.md#metaworld-protocol)"""
@@ -138,7 +98,43 @@ class Args:
     collect_expert: int = 0
     """write this many scripted-expert episodes to the run folder and exit (a fast prior buffer)"""
 
-    # World model
+    # Algorithm 2 (Appendix B): n, L, C, S, p, β, m, K, and the addressing model f_φ
+    batch_size: int = 50
+    """n: chunks per batch"""
+    seq_len: int = 50
+    """L: steps per chunk"""
+    updates_per_episode: int = 50
+    """C: updates between two collected episodes (Meta-World: the authors' 100 per 1,000 env steps; the paper: 100)"""
+    prefill_episodes: int = 10
+    """S: random-action episodes before training (Meta-World: the authors' 5,000 env steps; the paper: 1)"""
+    address_prob: float = 0.5
+    """p: probability that a world-model batch mixes in multitask chunks"""
+    current_fraction: float = 0.5
+    """β: fraction of a mixed batch that stays current-task chunks"""
+    address_batch: int = 50
+    """m: multitask chunks scored against the current chunks per addressing update"""
+    prior_max_episodes: int = 1000
+    """K: prior episodes kept, subsampled at random"""
+    prior_dirs: Tuple[str, ...] = ()
+    """episode folders of earlier runs (or their run folders): the multitask buffer M"""
+    prior_min_return: Optional[float] = None
+    """least return of a kept prior episode (the paper: 600 for walker walk)"""
+    address_refresh: int = 100
+    """recompute the candidates' embeddings D every this many updates (C in Algorithm 2)"""
+    address_candidates: int = 10_000
+    """most candidate chunks of M in D (a random subset of M's chunks at each refresh)"""
+    address_units: int = 200
+    """GRU size of the addressing model = size of a trajectory embedding"""
+    address_cnn_depth: int = 16
+    """channel multiplier of the addressing model's own conv encoder"""
+    address_lr: float = 1e-3
+    """Adam learning rate of the addressing model"""
+    address_grad_clip: float = 100.0
+    """gradient norm clipping of the addressing model"""
+    wm_on_addressed: bool = True
+    """train the world model on addressed chunks too (off: they only start imagination)"""
+
+    # Dreamer (v1): the world model
     deter_size: int = 200
     """RSSM deterministic (GRU) state size"""
     stoch_size: int = 30
@@ -161,12 +157,8 @@ class Args:
     """gradient norm clipping of every optimiser"""
     adam_eps: float = 1e-4
     """epsilon of every Adam optimiser (Dreamer v1's 1e-4; torch's default is 1e-8)"""
-    imagine_after_model_step: bool = False
-    """step the world model before imagining (off: Dreamer v1 computes all three losses with the same parameters)"""
-    init: Literal["keras", "torch"] = "keras"
-    """weight initialisation: Dreamer v1's (Keras': Glorot-uniform, zero biases, orthogonal GRU) or torch's defaults"""
 
-    # Actor-critic
+    # Dreamer (v1): actor and value
     actor_lr: float = 8e-5
     """Adam learning rate of the actor"""
     value_lr: float = 8e-5
@@ -179,99 +171,123 @@ class Args:
     """λ of the λ-returns"""
     expl_noise: float = 0.3
     """std of the Gaussian noise added to actions while collecting"""
-    actor_dist: Literal["tanh_normal", "trunc_normal"] = "tanh_normal"
-    """the actor's distribution: Dreamer v1's tanh of a Gaussian, or the authors' DreamerV2 actor (a Gaussian with
-    mean tanh(x) and std 2 sigmoid(x / 2) + --actor-min-std, truncated to [-1, 1]; they use --actor-min-std 0.1)"""
     actor_init_std: float = 5.0
     """the actor's std before training (tanh-normal)"""
     actor_min_std: float = 1e-4
     """the actor's minimal std"""
     actor_mean_scale: float = 5.0
     """the actor's pre-tanh mean is squashed to [-scale, scale]"""
-    slow_target: bool = False
-    """bootstrap the λ-returns from a copy of the value refreshed every --slow-target-every updates (DreamerV2)"""
-    slow_target_every: int = 100
-    """updates between two copies of the value into its slow target (the authors' `slow_target_update: 100`)"""
-    reward_scale: float = 1.0
-    """the world model learns rewards times this, so values scale with it; logged returns and success stay raw"""
-    eval_action: Literal["sample-mode", "mean"] = "sample-mode"
-    """evaluation's action: Dreamer v1's (the most likely of 100 samples) or the tanh of the Gaussian mean"""
 
-    # Replay
-    batch_size: int = 50
-    """n: chunks per batch"""
-    seq_len: int = 50
-    """L: steps per chunk"""
-    updates_per_episode: int = 50
-    """C: updates between two collected episodes (Meta-World: the authors' 100 per 1,000 env steps; the paper: 100)"""
-    prefill_episodes: int = 10
-    """S: random-action episodes before training (Meta-World: the authors' 5,000 env steps; the paper: 1)"""
-
-    # Addressing (RAMa)
-    prior_dirs: Tuple[str, ...] = ()
-    """episode folders of earlier runs (or their run folders): the multitask buffer M"""
-    prior_min_return: Optional[float] = None
-    """least return of a kept prior episode (the paper: 600 for walker walk)"""
-    prior_max_episodes: int = 1000
-    """K: prior episodes kept, subsampled at random"""
-    address_prob: float = 0.5
-    """p: probability that a world-model batch mixes in multitask chunks"""
-    current_fraction: float = 0.5
-    """β: fraction of a mixed batch that stays current-task chunks"""
-    address_batch: int = 50
-    """m: multitask chunks scored against the current chunks per addressing update"""
-    address_lr: float = 1e-3
-    """Adam learning rate of the addressing model"""
-    address_adam_eps: Optional[float] = None
-    """epsilon of the addressing model's Adam; None = --adam-eps"""
-    address_weight_decay: float = 0.0
-    """decoupled weight decay of f_φ: each step θ ← (1 − wd)·θ before Adam's (the authors' code: 1e-6)"""
-    address_grad_clip: float = 100.0
-    """gradient norm clipping of the addressing model"""
-    address_units: int = 200
-    """GRU size of the addressing model = size of a trajectory embedding"""
-    address_cnn_depth: int = 16
-    """channel multiplier of the addressing model's own conv encoder"""
-    address_imagine_starts: int = 0
-    """VRAMa: imagine from this many random posteriors of the picks; 0 = all (the paper)"""
+    # Departures from the paper, and switches between its readings: each names its docs/deviations.md entry
+    preset: Optional[Literal["authors-code"]] = None
+    """`authors-code`: the authors' code's values of the flags in PRESETS; given flags win
+    (docs/deviations.md#authors-preset)"""
+    address_stop_grad_x: Optional[bool] = None
+    """no gradient through f(x); None = on for rrama, rbrama; off for vrama (docs/deviations.md#stop-grad-x)"""
+    address_standardize: bool = True
+    """standardise the REINFORCE advantages over the batch (as the authors' code does)
+    (docs/deviations.md#standardized-advantages)"""
+    vrama_reduction: Literal["mean", "sum"] = "mean"
+    """VRAMa: "mean" = γ^t-weighted mean of V_λ (Dreamer's actor loss); "sum" = Eq. 1's Σ_t
+    (docs/deviations.md#vrama-reduction)"""
     vrama_select: Literal["embeddings", "frames"] = "embeddings"
     """VRAMa: what the straight-through one-hots multiply: the chunks' encodings or their frames
     (docs/deviations.md#vrama-select)"""
-    vrama_reduction: Literal["mean", "sum"] = "mean"
-    """VRAMa: "mean" = γ^t-weighted mean of V_λ (Dreamer's actor loss); "sum" = Eq. 1's Σ_t"""
-    address_layer_norm: bool = False
-    """layer-normalise f_φ's per-step input layer (not in the paper; docs/deviations.md#address-net-size)"""
-    address_reward_input: bool = False
-    """feed f_φ the stored reward of each step too (not in the paper)"""
-    address_stop_grad_x: Optional[bool] = None
-    """no gradient through f(x); None = on for rrama, rbrama; off for vrama"""
+    address_imagine_starts: int = 0
+    """VRAMa: imagine from this many random posteriors of the picks; 0 = all (the paper)
+    (docs/deviations.md#imagine-starts)"""
     address_x_net: Literal["shared", "frozen"] = "shared"
     """f(x) by f_φ itself (the paper) or by a frozen copy of its initial weights (not in the paper;
     docs/deviations.md#frozen-x-net)"""
-    address_standardize: bool = True
-    """standardise the REINFORCE advantages over the batch (as the authors' code does)"""
-    address_candidates_mode: Literal["memory", "fresh"] = "memory"
-    """what q̂ picks from: `memory` (D over M's chunks, Algorithm 2) or `fresh` (m new chunks of M per mixed batch)"""
-    address_logit_scale: float = 1.0
-    """q̂'s logits are multiplied by this before the softmax (the authors' `temp`, read in their memory mode only)"""
-    address_oversample_ends: bool = False
-    """draw M's chunks with start min(U{0..T}, T+1−L), as the authors' replay does: the last chunk ~L/T of the time"""
-    address_refresh: int = 100
-    """recompute the candidates' embeddings D every this many updates (C in Algorithm 2)"""
-    address_candidates: int = 10_000
-    """most candidate chunks of M in D (a random subset of M's chunks at each refresh)"""
+    address_layer_norm: bool = False
+    """layer-normalise f_φ's per-step input layer (not in the paper; docs/deviations.md#address-net-size)"""
+    address_reward_input: bool = False
+    """feed f_φ the stored reward of each step too (not in the paper; docs/deviations.md#address-net-size)"""
+    address_adam_eps: Optional[float] = None
+    """epsilon of the addressing model's Adam; None = --adam-eps (docs/deviations.md#address-optimiser)"""
+    address_weight_decay: float = 0.0
+    """decoupled weight decay of f_φ: each step θ ← (1 − wd)·θ before Adam's (the authors' code: 1e-6)
+    (docs/deviations.md#address-optimiser)"""
     own_episodes_in_m: bool = True
-    """store the run's own episodes in M too (Algorithm 2); off: M holds prior data (and earlier tasks') only"""
+    """store the run's own episodes in M too (Algorithm 2); off: M holds prior data (and earlier tasks') only
+    (docs/deviations.md#own-episodes-in-m)"""
+    address_candidates_mode: Literal["memory", "fresh"] = "memory"
+    """what q̂ picks from: `memory` (D over M's chunks, Algorithm 2) or `fresh` (m new chunks of M per mixed batch)
+    (docs/deviations.md#fresh-candidates)"""
+    address_logit_scale: float = 1.0
+    """q̂'s logits are multiplied by this before the softmax (the authors' `temp`, read in their memory mode only)
+    (docs/deviations.md#logit-scale)"""
+    address_oversample_ends: bool = False
+    """draw M's chunks with start min(U{0..T}, T+1−L), as the authors' replay does: the last chunk ~L/T of the time
+    (docs/deviations.md#oversample-ends)"""
     reward_mask_borrowed: Literal["other-tasks", "all"] = "other-tasks"
-    """which borrowed chunks lose their reward loss: other tasks' (the paper) or all of them (the authors' code)"""
+    """which borrowed chunks lose their reward loss: other tasks' (the paper) or all of them (the authors' code)
+    (docs/deviations.md#reward-mask-borrowed)"""
     vrama_objective: Literal["imagine", "posterior"] = "imagine"
-    """VRAMa: −V_λ imagined from the picks (Eq. 1), or −λ-returns along the picks' own posteriors (the authors')"""
-    wm_on_addressed: bool = True
-    """train the world model on addressed chunks too (off: they only start imagination)"""
+    """VRAMa: −V_λ imagined from the picks (Eq. 1), or −λ-returns along the picks' own posteriors (the authors')
+    (docs/deviations.md#vrama-posterior)"""
     addressed_wm_rule: Literal["rows", "batch"] = "rows"
-    """with --no-wm-on-addressed: mask the borrowed rows, or skip the model step of a mixed batch (the authors')"""
+    """with --no-wm-on-addressed: mask the borrowed rows, or skip the model step of a mixed batch (the authors')
+    (docs/deviations.md#addressed-wm-rule)"""
+    imagine_after_model_step: bool = False
+    """step the world model before imagining (off: Dreamer v1 computes all three losses with the same parameters)
+    (docs/deviations.md#update-order)"""
+    init: Literal["keras", "torch"] = "keras"
+    """weight initialisation: Dreamer v1's (Keras': Glorot-uniform, zero biases, orthogonal GRU) or torch's defaults
+    (docs/deviations.md#init-eval-action)"""
+    eval_action: Literal["sample-mode", "mean"] = "sample-mode"
+    """evaluation's action: Dreamer v1's (the most likely of 100 samples) or the tanh of the Gaussian mean
+    (docs/deviations.md#init-eval-action)"""
+    actor_dist: Literal["tanh_normal", "trunc_normal"] = "tanh_normal"
+    """the actor's distribution: Dreamer v1's tanh of a Gaussian, or the authors' DreamerV2 actor (a Gaussian with
+    mean tanh(x) and std 2 sigmoid(x / 2) + --actor-min-std, truncated to [-1, 1]; they use --actor-min-std 0.1)
+    (docs/deviations.md#actor-dist)"""
+    slow_target: bool = False
+    """bootstrap the λ-returns from a copy of the value refreshed every --slow-target-every updates (DreamerV2)
+    (docs/deviations.md#slow-target)"""
+    slow_target_every: int = 100
+    """updates between two copies of the value into its slow target (the authors' `slow_target_update: 100`)
+    (docs/deviations.md#slow-target)"""
+    reward_scale: float = 1.0
+    """the world model learns rewards times this, so values scale with it; logged returns and success stay raw
+    (docs/deviations.md#metaworld-reward-scale)"""
+
+    # Logging and run folders
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """this experiment's name (part of the run folder's name)"""
+    run_dir: str = "runs"
+    """the folder that holds run folders"""
+    resume: Optional[str] = None
+    """a run folder to continue with its args.json (only RESUME_FLAGS beside it)"""
+    eval_every: int = 10_000
+    """run evaluation episodes (no exploration noise) every this many environment steps, and at the last step"""
+    eval_episodes: int = 1
+    """evaluation episodes per evaluation"""
+    capture_video: bool = False
+    """save GIFs of eval episodes and (pixels) of open-loop world-model predictions under `videos/`"""
+    plain_log: bool = False
+    """print plain lines instead of progress bars (always so without a terminal on stderr)"""
+    log_interval_seconds: float = 60.0
+    """plain-log mode: a progress line at least this often inside a round of updates (0: after every update)"""
     address_plot_every: int = 10
     """draw the addressing-probabilities picture every this many episodes"""
+    track: bool = False
+    """log to Weights & Biases as well (needs `pip install wandb`)"""
+    wandb_project: str = "rama"
+    """the W&B project"""
+
+    # Speed (none changes what is learned, up to floating-point rounding)
+    device: str = "auto"
+    """`auto` (CUDA when present, else CPU), `cpu`, `cuda`, `cuda:1`, ..."""
+    precision: Literal["fp32", "bf16"] = "fp32"
+    """`bf16`: conv stacks and MLP hidden layers in bfloat16 autocast (RSSM, output layers, losses stay fp32)"""
+    channels_last: bool = True
+    """conv weights and activations in channels-last layout (10% faster updates on CPU; no change on an H100)"""
+    num_envs: int = 1
+    """environments collecting in parallel (subprocesses via gymnasium's AsyncVectorEnv when > 1)"""
+    cuda_graph: Optional[bool] = None
+    """capture each update as CUDA graphs and replay them (GraphedUpdate; eager if a capture fails). None: on when
+    the device is CUDA (2.6-6x faster updates on an H100, the same math), off elsewhere; True on a CPU is refused"""
 
 
 def resolve_defaults(args: Args) -> Args:
@@ -721,6 +737,18 @@ def to_torch(batch: dict, device) -> dict:
     return preprocess(to_device(batch, device))
 
 
+def sample_batches(replay: Replay, n: int, seq_len: int, rng: np.random.Generator, device, count: int):
+    """x_i ~ M_τ for `count` updates: yields (n chunks on the device, the seconds their sampling took), from the
+    task's own random stream. The replay must not change meanwhile (episodes are added between rounds)."""
+    device = torch.device(device)
+    for _ in range(count):
+        t0 = time.perf_counter()
+        batch = {k: torch.from_numpy(v) for k, v in replay.sample(n, seq_len, rng).items()}
+        if device.type == "cuda":  # page-locked memory: the copy to the GPU runs asynchronously
+            batch = {k: v.pin_memory() for k, v in batch.items()}
+        yield to_torch(batch, device), time.perf_counter() - t0
+
+
 # ----------------------------------------------------------------------------------------------------------
 # 5. Networks
 # ----------------------------------------------------------------------------------------------------------
@@ -1120,18 +1148,23 @@ class Freeze:
             p.requires_grad_(True)
 
 
-def optimizer_step(optimizer, loss, params, clip: float, retain_graph: bool = False, step: bool = True):
-    """Backpropagate into `params` only (no gradient is computed for anything else the loss depends on), clip, step.
-    step False stops after the backward pass; loss None takes the gradients already there to the clip and step."""
-    params = list(params)
-    if loss is not None:
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward(inputs=params, retain_graph=retain_graph)
-    if not step:
-        return None
-    norm = nn.utils.clip_grad_norm_(params, clip)
+def backward(optimizer, loss, params, retain_graph: bool = False):
+    """Gradients of loss for `params` only (nothing else the loss depends on gets one), the old ones cleared."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward(inputs=list(params), retain_graph=retain_graph)
+
+
+def clip_and_step(optimizer, params, clip: float):
+    """Clip the gradients' global norm to `clip`, then step; returns the norm before clipping."""
+    norm = nn.utils.clip_grad_norm_(list(params), clip)
     optimizer.step()
     return norm
+
+
+def optimizer_step(optimizer, loss, params, clip: float, retain_graph: bool = False):
+    params = list(params)
+    backward(optimizer, loss, params, retain_graph)
+    return clip_and_step(optimizer, params, clip)
 
 
 class Agent(nn.Module):
@@ -1157,25 +1190,9 @@ class Agent(nn.Module):
         return {"model": self.model_opt, "actor": self.actor_opt, "value": self.value_opt}
 
 
-def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_mask=None, step_model=True) -> dict:
-    """One Dreamer update: the world-model loss on the batch, actor and value losses in imagination from its
-    posteriors. As in Dreamer v1, all three are computed with the parameters before this update and then stepped
-    (imagination rolls the model as it was); --imagine-after-model-step steps the model before imagining.
-    step_model False leaves the model as it is (the actor and value still learn from the batch's posteriors)."""
-    timings = {}
-    t0 = time.perf_counter()
-    if args.reward_scale != 1.0:  # docs/deviations.md#metaworld-reward-scale: what the model, value and actor see
-        batch = {**batch, "reward": batch["reward"] * args.reward_scale}
-    wm_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask, model_mask,
-                                              args.obs_std)
-
-    if step_model:  # the model's gradients now: its graph's activations are freed before imagination needs memory
-        optimizer_step(agent.model_opt, wm_loss, agent.wm.parameters(), args.grad_clip, step=False)
-    if step_model and args.imagine_after_model_step:
-        metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, None, agent.wm.parameters(), args.grad_clip)
-    timings["world_model"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
+def imagine_behaviour(agent: Agent, post: dict, args: Args):
+    """Imagine --horizon steps with the actor from every posterior of the batch: the λ-returns (H-1, N), their γ^t
+    weights, the value (H, N) to fit, and the start states, actions and rewards the diagnostics read."""
     with Freeze(agent.wm):  # actor gradients flow through the model, but do not train it
         start = {k: v.detach().flatten(0, 1) for k, v in post.items()}  # (B*T, ...): every posterior
         feats, actions = imagine(agent.wm, agent.actor, start, args.horizon)  # (H, B*T, F), (H, B*T, A)
@@ -1185,21 +1202,47 @@ def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_ma
     returns, weights, value, reward = imagined_returns(agent.wm, bootstrap_net, feats, args.gamma, args.return_lambda)
     if agent.value_target is not None:
         value = agent.value(feats.detach()).squeeze(-1)  # (H, B*T)
-    actor_loss = -(weights * returns).mean()
-    metrics["losses/actor"] = actor_loss
-    metrics["losses/actor_grad_norm"] = optimizer_step(agent.actor_opt, actor_loss, agent.actor.parameters(),
-                                                       args.grad_clip, retain_graph=True)
-    value_loss = -(weights * gaussian_loglik(value[:-1], returns.detach(), 0)).mean()  # (H-1, B*T) terms
-    metrics["losses/value"] = value_loss
-    metrics["losses/value_grad_norm"] = optimizer_step(agent.value_opt, value_loss, agent.value.parameters(),
-                                                       args.grad_clip)
-    metrics["charts/imagined_return"] = returns.mean()
-    metrics.update(imagination_diagnostics(agent.actor, start, actions, reward, value))
-    timings["actor_critic"] = time.perf_counter() - t0
-    if step_model and not args.imagine_after_model_step:  # last: imagination rolled the model as it was
-        t0 = time.perf_counter()
-        metrics["losses/model_grad_norm"] = optimizer_step(agent.model_opt, None, agent.wm.parameters(), args.grad_clip)
-        timings["world_model"] += time.perf_counter() - t0
+    return returns, weights, value, (start, actions, reward)
+
+
+def actor_loss(returns, weights):
+    """Dreamer v1's actor loss: the γ^t-weighted λ-returns, maximised through the model's imagined dynamics."""
+    return -(weights * returns).mean()
+
+
+def value_loss(value, returns, weights):
+    """Dreamer v1's value loss: −log N(R_t; v(s_t), 1) of the λ-returns, stopped, γ^t-weighted."""
+    return -(weights * gaussian_loglik(value[:-1], returns.detach(), 0)).mean()  # (H-1, B*T) terms
+
+
+def train_step(agent: Agent, batch: dict, args: Args, reward_mask=None, model_mask=None, step_model=True) -> dict:
+    """One Dreamer update, in v1's shape: the world-model loss on the batch, then the actor and value losses in
+    imagination from its posteriors, then the steps. As in v1, all three losses use the parameters before this
+    update (imagination rolls the model as it was); --imagine-after-model-step steps the model first.
+    step_model False leaves the model as it is (the actor and value still learn from the batch's posteriors)."""
+    timings = {}
+    with timed(timings, "world_model"):
+        if args.reward_scale != 1.0:  # docs/deviations.md#metaworld-reward-scale: what the model, value and actor see
+            batch = {**batch, "reward": batch["reward"] * args.reward_scale}
+        model_loss, post, metrics = world_model_loss(agent.wm, batch, args.free_nats, args.kl_scale, reward_mask,
+                                                     model_mask, args.obs_std)
+        if step_model:  # the model's gradients now: its graph's activations are freed before imagination needs memory
+            backward(agent.model_opt, model_loss, agent.wm.parameters())
+        if step_model and args.imagine_after_model_step:  # docs/deviations.md#update-order
+            metrics["losses/model_grad_norm"] = clip_and_step(agent.model_opt, agent.wm.parameters(), args.grad_clip)
+    with timed(timings, "actor_critic"):
+        returns, weights, value, (start, actions, reward) = imagine_behaviour(agent, post, args)
+        metrics["losses/actor"], metrics["losses/value"] = actor_loss(returns, weights), value_loss(value, returns,
+                                                                                                       weights)
+        backward(agent.actor_opt, metrics["losses/actor"], agent.actor.parameters(), retain_graph=True)
+        metrics["losses/actor_grad_norm"] = clip_and_step(agent.actor_opt, agent.actor.parameters(), args.grad_clip)
+        backward(agent.value_opt, metrics["losses/value"], agent.value.parameters())
+        metrics["losses/value_grad_norm"] = clip_and_step(agent.value_opt, agent.value.parameters(), args.grad_clip)
+        metrics["charts/imagined_return"] = returns.mean()
+        metrics.update(imagination_diagnostics(agent.actor, start, actions, reward, value))  # the stepped actor's std
+    with timed(timings, "world_model"):
+        if step_model and not args.imagine_after_model_step:  # last: imagination rolled the model as it was
+            metrics["losses/model_grad_norm"] = clip_and_step(agent.model_opt, agent.wm.parameters(), args.grad_clip)
     return {"metrics": metrics, "timings": timings}
 
 
@@ -1300,7 +1343,7 @@ def vrama_loss(agent: Agent, one_hot, m_batch: dict, horizon: int, gamma: float,
 
 
 class Addressing:
-    """The addressing model f_φ, its optimiser, and the embeddings D of the candidate chunks of M (Algorithm 2)."""
+    """The addressing model f_φ, its optimiser, and D: the embeddings of the candidate chunks of M (Algorithm 2)."""
 
     def __init__(self, obs_shape, action_size: int, args: Args, device):
         self.net = AddressNet(obs_shape, action_size, args.address_units, args.address_cnn_depth,
@@ -1323,10 +1366,8 @@ class Addressing:
         self.generator = torch.Generator(device).manual_seed(args.seed)  # the picks' Gumbel noise
         self.candidates = None  # (episode ids, starts) of the chunks embedded in D (or of the last fresh pool)
         self.candidate_rewards = None  # (N_c,) their stored reward sums, for the logs and the picture
-        self.D = None  # (N_c, U)
-        self.pool = None  # the candidates' chunks as stored, on the device: what the picks of q̂ over D gather
-        self.pool_reward_mask = None  # (N_c,) their reward-mask values when borrowed (plan_update sets them)
-        self.pool_embed, self.pool_valid = None, None  # D, or D padded for --cuda-graph with its valid rows (N_p,)
+        self.candidate_embeddings = None  # D: (N_c, U), D_j = f_φ(M_j)
+        self.pool = None  # a Pool of the candidates' chunks on the device, for the updates to pick from
 
     def embed(self, batch: dict):
         """f_φ(M_j): (B, U)."""
@@ -1348,8 +1389,9 @@ class Addressing:
         else:
             index = gumbel_max(logits, self.generator)  # (n,)
             # RbRAMa filters x in the same pass as M_j (one loop of RSSM steps, not two): the sums of m + n chunks
-            rows = m_batch if self.method == "rrama" else {k: torch.cat([m_batch[k], x[k]]) for k in ("obs", "action")}
-            reward_sums = predicted_reward_sum(agent.wm, rows)  # (m,) or (m + n,)
+            scored = m_batch if self.method == "rrama" else \
+                {k: torch.cat([m_batch[k], x[k]]) for k in ("obs", "action")}
+            reward_sums = predicted_reward_sum(agent.wm, scored)  # (m,) or (m + n,)
             bandit_reward = reward_sums[:len(m_batch["action"])]  # (m,)
             # what the objective gains: the expected bandit reward of a pick under q against a uniform pick
             metrics["addressing/bandit_reward_q"] = (logits.detach().softmax(-1) @ bandit_reward).mean()
@@ -1365,10 +1407,23 @@ class Addressing:
                 "addressing/entropy_uniform": torch.full_like(entropy, np.log(logits.shape[-1])),
                 "addressing/grad_norm": grad_norm, **metrics}
 
+    def refresh_if_due(self, args: Args, multitask: Replay, rng, updates_done: int, task_name: str):
+        """Algorithm 2's "if c = 1": D recomputed at a task's first update and then every --address-refresh updates,
+        and the pool of its chunks rebuilt (padded for --cuda-graph). Returns the seconds it took, or None."""
+        if self.candidate_embeddings is not None and updates_done % args.address_refresh:
+            return None
+        t0 = time.perf_counter()
+        self.refresh(multitask, args.seq_len, args.address_candidates, rng)
+        # the candidates' mask values change only here (a task's first update refreshes: 0 updates done, or no D)
+        self.pool.reward_mask = borrowed_reward_mask(args, multitask, self.candidates[0], task_name, self.device)
+        if args.cuda_graph:
+            self.pool = padded_pool(self.pool, args.address_candidates)
+        return time.perf_counter() - t0
+
     @torch.no_grad()
     def refresh(self, multitask: Replay, seq_len: int, cap: int, rng, chunk_batch: int = 64):
-        """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks (once per C updates), and keep their chunks on
-        the device (as stored: images uint8), for the updates to gather their picks from without the host."""
+        """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks, and keep their chunks on the device (as
+        stored: images uint8), for the updates to gather their picks from without the host."""
         self.candidates = multitask.grid_ids(seq_len, cap, rng)
         self.candidate_rewards = multitask.chunk_rewards(*self.candidates, seq_len)
         parts, embeddings = [], []
@@ -1376,76 +1431,73 @@ class Addressing:
             ids = (self.candidates[0][i:i + chunk_batch], self.candidates[1][i:i + chunk_batch])
             parts.append(to_device(multitask.gather(*ids, seq_len), self.device))
             embeddings.append(self.embed(preprocess(parts[-1])))
-        self.pool = {k: torch.cat([part[k] for part in parts], 0) for k in parts[0]}  # (N_c, L, ...)
-        self.D = self.pool_embed = torch.cat(embeddings, 0)  # (N_c, U)
-        self.pool_valid = None
-
-    def pad_pool(self, cap: int):
-        """--cuda-graph: the pool, D and the mask padded to a power of two (at most --address-candidates) rows, so
-        that a captured update serves until M outgrows it; q̂ never picks the padding (pool_valid)."""
-        size = min(1 << (len(self.D) - 1).bit_length(), cap)  # refresh embeds at most cap candidates
-        pad = lambda t: torch.cat([t, t.new_zeros((size - len(t), *t.shape[1:]))])  # noqa: E731
-        self.pool, self.pool_embed = {k: pad(v) for k, v in self.pool.items()}, pad(self.D)  # (N_p, ...)
-        self.pool_reward_mask = pad(self.pool_reward_mask)
-        self.pool_valid = torch.arange(size, device=self.D.device) < len(self.D)  # (N_p,)
+        self.candidate_embeddings = torch.cat(embeddings, 0)  # (N_c, U)
+        chunks = {k: torch.cat([part[k] for part in parts], 0) for k in parts[0]}  # (N_c, L, ...)
+        self.pool = Pool(self.candidates, chunks, None, self.candidate_embeddings)
 
     @torch.no_grad()
-    def logits(self, x: dict, D=None):
+    def logits(self, x: dict, embeddings=None):
         """s · f(x_i)ᵀ D_j, the logits of q̂ (s: --address-logit-scale), over D or other embeddings: (n, N_c)."""
-        return self.embed_x(x) @ (self.D if D is None else D).T * self.logit_scale
+        return self.embed_x(x) @ (self.candidate_embeddings if embeddings is None else embeddings).T * self.logit_scale
 
     def probs(self, x: dict):
         """q̂(j | x_i) ∝ exp(s · f(x_i)ᵀ D_j) over the candidates: (n, N_c)."""
         return self.logits(x).softmax(-1)
 
     @torch.no_grad()
-    def pick(self, x: dict, pool: dict, pool_embed=None, pool_valid=None):
-        """j ~ q̂(j | x_i) over a pool of chunks (as stored) whose embeddings are pool_embed (None: embedded here),
-        drawn on the device by Gumbel-max: (n,). pool_valid (P,) False: padding, never picked."""
-        logits = self.logits(x, self.embed(preprocess(pool)) if pool_embed is None else pool_embed)  # (n, P)
-        if pool_valid is not None:
-            logits = logits.masked_fill(~pool_valid, float("-inf"))
+    def pick(self, x: dict, pool: "Pool"):
+        """j ~ q̂(j | x_i) over a pool's chunks (embedded here when the pool holds no embeddings), drawn on the device
+        by Gumbel-max: (n,). Rows of the pool that are padding (pool.valid False) are never picked."""
+        embeddings = self.embed(preprocess(pool.chunks)) if pool.embeddings is None else pool.embeddings
+        logits = self.logits(x, embeddings)  # (n, P)
+        if pool.valid is not None:
+            logits = logits.masked_fill(~pool.valid, float("-inf"))
         return gumbel_max(logits, self.generator)
 
 
+@dataclass
+class Pool:
+    """Chunks of M kept on the device for the borrowed rows of a mixed batch to be picked from."""
+    ids: tuple  # (episode ids, starts) of the chunks in M, each (P,)
+    chunks: dict  # as stored (images uint8): obs (P, L, ...), action (P, L, A), reward and terminal (P, L)
+    reward_mask: Optional[torch.Tensor]  # (P,) 1 where a borrowed chunk keeps its reward loss
+    embeddings: Optional[torch.Tensor] = None  # (P, U): D over the candidates (memory mode); None: embedded at the pick
+    valid: Optional[torch.Tensor] = None  # (P,) False on the rows --cuda-graph pads the pool with
+
+
+@dataclass
+class UpdatePlan:
+    """What the host decides before one update of Algorithm 2, handed to `update` as tensors on the device, so that
+    the update runs without waiting for the host. Empty: the plain Dreamer update (no M, or no M yet)."""
+    mixed: bool = False  # α ~ Bernoulli(p): the batch's last (1 − β)·n rows are replaced by chunks of M
+    m_batch: Optional[dict] = None  # the m chunks M_j ~ M that train f_φ (the addressed methods)
+    pool: Optional[Pool] = None  # what the borrowed rows are picked from (None: a batch without borrowed rows)
+    refresh_seconds: Optional[float] = None  # set when this update recomputed D
+
+
 def plan_update(args: Args, multitask: Replay, addressing: Optional[Addressing], rng, device, task_name: str,
-                updates_done: int) -> dict:
-    """What the host decides before one update (Algorithm 2), handed to `update` as tensors on the device: the m
-    chunks of M that train f_φ, whether the agent's batch mixes M in (probability p), and the pool its borrowed
-    chunks come from, with a reward-mask value per pool chunk. The update then runs without waiting for the host."""
+                updates_done: int) -> UpdatePlan:
+    """The host's part of one update (Algorithm 2): α, D's refresh when due, the m chunks of M that train f_φ, and
+    the pool the borrowed rows come from, with a reward-mask value per pool chunk."""
     seq_len, ends, borrow = args.seq_len, args.address_oversample_ends, args.batch_size - keep_rows(args)
     if args.method == "dreamer" or multitask.num_chunks(seq_len) == 0:
-        return {}  # no M (yet): the plain Dreamer update
-    plan = {"mixed": borrow > 0 and bool(rng.random() < args.address_prob)}
+        return UpdatePlan()
+    plan = UpdatePlan(mixed=borrow > 0 and bool(rng.random() < args.address_prob))
     memory_mode = addressing is not None and args.address_candidates_mode == "memory"
     if addressing is not None:
-        if memory_mode and (addressing.D is None or updates_done % args.address_refresh == 0):
-            t0 = time.perf_counter()
-            addressing.refresh(multitask, seq_len, args.address_candidates, rng)
-            # the candidates' mask values change only here (a task's first update refreshes: 0 updates done, or no D)
-            addressing.pool_reward_mask = borrowed_reward_mask(args, multitask, addressing.candidates[0], task_name,
-                                                               device)
-            if args.cuda_graph:
-                addressing.pad_pool(args.address_candidates)
-            plan["refresh_seconds"] = time.perf_counter() - t0
-        plan["m_batch"] = to_torch(multitask.sample(args.address_batch, seq_len, rng, ends), device)  # M_j ~ M
+        if memory_mode:
+            plan.refresh_seconds = addressing.refresh_if_due(args, multitask, rng, updates_done, task_name)
+        plan.m_batch = to_torch(multitask.sample(args.address_batch, seq_len, rng, ends), device)  # M_j ~ M
     if borrow == 0:
         return plan
     if memory_mode:
-        plan["pool_ids"], plan["pool"] = addressing.candidates, addressing.pool
-        plan["pool_embed"] = addressing.pool_embed
-        plan["pool_reward_mask"] = addressing.pool_reward_mask
-        if addressing.pool_valid is not None:
-            plan["pool_valid"] = addressing.pool_valid
+        plan.pool = addressing.pool
     else:  # `uniform`: the borrowed chunks themselves; `fresh` (the authors' code): m new chunks for q̂ to pick from
-        plan["pool_ids"] = multitask.sample_ids(borrow if addressing is None else args.address_batch, seq_len, rng,
-                                                ends)
-        plan["pool"] = to_device(multitask.gather(*plan["pool_ids"], seq_len), device)
+        ids = multitask.sample_ids(borrow if addressing is None else args.address_batch, seq_len, rng, ends)
+        plan.pool = Pool(ids, to_device(multitask.gather(*ids, seq_len), device),
+                         borrowed_reward_mask(args, multitask, ids[0], task_name, device))
         if addressing is not None:
-            addressing.candidates = plan["pool_ids"]
-            addressing.candidate_rewards = multitask.chunk_rewards(*plan["pool_ids"], seq_len)
-        plan["pool_reward_mask"] = borrowed_reward_mask(args, multitask, plan["pool_ids"][0], task_name, device)
-    plan["mix"] = torch.tensor(float(plan["mixed"])).to(device, non_blocking=True)  # () 0 or 1
+            addressing.candidates, addressing.candidate_rewards = ids, multitask.chunk_rewards(*ids, seq_len)
     return plan
 
 
@@ -1467,42 +1519,48 @@ def keep_rows(args: Args) -> int:
     return int(round(args.current_fraction * args.batch_size))
 
 
-def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: dict, args: Args) -> dict:
-    """One update of Algorithm 2, given n current-task chunks x_i ~ M_τ and the host's plan: (a) the addressing
-    step; (b) the agent's step on n rows: β·n chunks of x, then x's other rows or, when plan["mix"] = 1, chunks of
-    the pool picked by q̂ (by the host for `uniform`), with per-row reward and model masks. A mixed and an unmixed
-    update are the same computation with other mask values and rows: fixed shapes, and no host sync inside."""
-    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
-    if "m_batch" in plan:  # (a) train f_φ with the agent fixed
-        t0 = time.perf_counter()
-        metrics.update(addressing.train(agent, x, plan["m_batch"], args))
-        if "refresh_seconds" in plan:
-            metrics["addressing/refresh_seconds"] = torch.tensor(plan["refresh_seconds"])
-        timings["addressing"] = time.perf_counter() - t0 + plan.get("refresh_seconds", 0.0)
+def mix_batch(x: dict, pool: Pool, picks, keep: int, mixed: bool, mask_borrowed_model_rows: bool):
+    """Algorithm 2's "if α = 1: B ← {x_i}_{i=1}^{βn} ∪ {M_j_i}_{i=1}^{(1−β)n}": x's first β·n rows stay and
+    its other rows are replaced by the pool's chunks `picks`. Returns the batch, the reward mask (n,) (1: the row
+    keeps its reward loss) and, with mask_borrowed_model_rows, the model mask (n,) (0: the row is left out of the
+    model's loss). Unmixed (α = 0): x itself, every row kept, with masks of the same shapes."""
+    ones = torch.ones(len(x["reward"]), device=x["reward"].device)  # (n,)
+    if not mixed:
+        return x, ones, ones if mask_borrowed_model_rows else None
+    borrowed = preprocess({k: v[picks] for k, v in pool.chunks.items()})  # ((1 − β)·n, L, ...)
+    batch = {k: torch.cat([x[k][:keep], borrowed[k]], 0) for k in x}
+    reward_mask = torch.cat([ones[:keep], pool.reward_mask[picks]])
+    model_mask = torch.cat([ones[:keep], torch.zeros_like(ones[keep:])]) if mask_borrowed_model_rows else None
+    return batch, reward_mask, model_mask
 
+
+def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: UpdatePlan, args: Args) -> dict:
+    """One update of Algorithm 2, given n current-task chunks x_i ~ M_τ and the host's plan: (a) the addressing
+    step; (b) the agent's step on the batch mix_batch makes of x and the pool's chunks picked by q̂ (by the host for
+    `uniform`). Picks are drawn mixed or not (the random stream does not depend on α); no host sync inside."""
+    timings, metrics, picks = {"batch_sampling": 0.0}, {}, None
+    if plan.m_batch is not None:  # (a) train f_φ with the agent fixed
+        with timed(timings, "addressing"):
+            metrics.update(addressing.train(agent, x, plan.m_batch, args))
+        if plan.refresh_seconds is not None:
+            metrics["addressing/refresh_seconds"] = torch.tensor(plan.refresh_seconds)
+            timings["addressing"] += plan.refresh_seconds
     batch, reward_mask, model_mask = x, None, None
-    if "pool" in plan:  # (b) mix M into the agent's batch
-        t0 = time.perf_counter()
-        keep = keep_rows(args)
-        borrow = len(x["reward"]) - keep
-        if addressing is None:  # `uniform`: the host drew the pool's chunks uniformly from M
-            picks = torch.arange(borrow, device=x["reward"].device)
-        else:  # j ~ q̂(j | x_i) for the first rows of x
-            picks = addressing.pick({k: v[:borrow] for k, v in x.items()}, plan["pool"], plan.get("pool_embed"),
-                                    plan.get("pool_valid"))
-        borrowed = preprocess({k: v[picks] for k, v in plan["pool"].items()})  # (borrow, L, ...)
-        mix = plan["mix"].bool()
-        batch = {k: torch.cat([x[k][:keep], torch.where(mix, borrowed[k], x[k][keep:])], 0) for k in x}
-        ones = torch.ones(borrow, device=mix.device)
-        reward_mask = torch.cat([ones.new_ones(keep), torch.where(mix, plan["pool_reward_mask"][picks], ones)])
-        if not args.wm_on_addressed and args.addressed_wm_rule == "rows":
-            model_mask = torch.cat([ones.new_ones(keep), ones - plan["mix"]])  # (n,)
-        timings["batch_sampling"] += time.perf_counter() - t0
-    step_model = not (mixed_skips_model_step(args) and plan.get("mixed"))
+    if plan.pool is not None:  # (b) mix M into the agent's batch
+        with timed(timings, "batch_sampling"):
+            keep = keep_rows(args)
+            borrow = len(x["reward"]) - keep
+            if addressing is None:  # `uniform`: the host drew the pool's chunks uniformly from M
+                picks = torch.arange(borrow, device=x["reward"].device)
+            else:  # j ~ q̂(j | x_i) for the first rows of x
+                picks = addressing.pick({k: v[:borrow] for k, v in x.items()}, plan.pool)
+            batch, reward_mask, model_mask = mix_batch(x, plan.pool, picks, keep, plan.mixed, not args.wm_on_addressed
+                                                       and args.addressed_wm_rule == "rows")
+    step_model = not (mixed_skips_model_step(args) and plan.mixed)
     out = train_step(agent, batch, args, reward_mask, model_mask, step_model)
     out["metrics"].update(metrics)
     out["timings"].update(timings)
-    out["picks"] = (plan["pool_ids"], picks) if picks is not None else None  # indices into the pool (read if mixed)
+    out["picks"] = (plan.pool.ids, picks) if plan.mixed else None  # the pool's ids and the picks' indices into it
     return out
 
 
@@ -1681,14 +1739,35 @@ def round_line(env_steps: int, total_steps: int, done: int, todo: int, seconds: 
 # ----------------------------------------------------------------------------------------------------------
 # 9. The training loop (Algorithms 1 and 2)
 # ----------------------------------------------------------------------------------------------------------
-class Task(types.SimpleNamespace):
-    """One task of Algorithm 1 as the steps of Algorithm 2 share it. Set by train_task: args, env_id, name (the
-    task's short name), seed, path (its folder), device, replay (M_τ), multitask (M), addressing (f_φ or None), rng,
-    address_path, env_steps. Set by open_task: envs, eval_env, agent, policy, step (`update`, or its CUDA graphs),
-    sampler, logger, progress (the bar over env steps; disabled: plain lines), state (updates done, the next
-    evaluation's step, the round in progress: saved in the checkpoint), start ((time, env steps) when this process
-    began the task: the speed counts from there), last_line (when the last plain line was printed) and noticed (the
-    first update's CPU notice is done)."""
+@dataclass
+class Task:
+    """One task of Algorithm 1 as the steps of Algorithm 2 share it: what train_task gives it, what open_task builds,
+    and the counters its checkpoint saves."""
+    args: Args
+    env_id: str
+    name: str  # the task's short name, stored with its episodes
+    seed: int
+    path: str  # its folder: the run folder, or <run>/<k>_<task> in a --task-sequence
+    device: torch.device
+    replay: "Replay"  # M_τ
+    multitask: "Replay"  # M
+    addressing: Optional["Addressing"]  # f_φ (None for dreamer and uniform)
+    rng: np.random.Generator
+    address_path: str  # address.pt, the run's f_φ
+    env_steps: int
+    envs: Any = None  # the collecting envs and the evaluation env (open_task)
+    eval_env: Any = None
+    agent: Optional["Agent"] = None
+    policy: Optional["Policy"] = None
+    step: Any = None  # `update`, or its CUDA graphs (GraphedUpdate): (x, plan) -> the update's output
+    batch_rng: Any = None  # the random stream of the x_i ~ M_τ (sample_batches)
+    logger: Any = None
+    progress: Any = None  # the bar over env steps (disabled: plain lines)
+    # updates done, the next evaluation's step, the round in progress: saved in the checkpoint
+    counters: dict = dataclasses.field(default_factory=dict)
+    start: tuple = ()  # (time, env steps) when this process began the task: the speed counts from there
+    last_line: float = 0.0  # when the last plain line was printed
+    noticed: bool = False  # the first update's CPU notice is done
 
 
 def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multitask: Replay,
@@ -1717,7 +1796,7 @@ def train_task(args: Args, env_id: str, seed: int, task_path: str, device, multi
                 collect(task)  # (c) an episode per env, each stored atomically
             evaluate_if_due(task)  # the last step's evaluation
         finally:
-            for resource in (task.progress, task.sampler, task.logger, task.envs, task.eval_env):
+            for resource in (task.progress, task.logger, task.envs, task.eval_env):
                 resource.close()
     if args.method != "dreamer" and not args.own_episodes_in_m:  # the task is over: its episodes join M now
         for episode in replay.episodes:
@@ -1733,7 +1812,7 @@ def add_episode(args: Args, replay: Replay, multitask: Replay, episode: dict):
 
 
 def open_task(task: Task, checkpoint: Optional[dict]) -> Task:
-    """The envs, a fresh agent (or the checkpoint's), the batch sampler, the logger and the progress bar."""
+    """The envs, a fresh agent (or the checkpoint's), the batches' random stream, the logger and the progress bar."""
     args, replay = task.args, task.replay
     task.envs, task.eval_env = make_envs(args, task.env_id, task.seed, args.num_envs), make_envs(
         args, task.env_id, task.seed + 10_000, 1)
@@ -1744,12 +1823,11 @@ def open_task(task: Task, checkpoint: Optional[dict]) -> Task:
         update, task.agent, task.addressing, args=args)  # (x, plan) -> the update's output
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
     # updates it still has to do (a run stopped mid-round finishes it; one killed after a round does not redo it)
-    task.state = {"updates": 0, "next_eval": args.eval_every}
+    task.counters = {"updates": 0, "next_eval": args.eval_every}
     if checkpoint is not None:
-        task.state = load_checkpoint(os.path.join(task.path, "checkpoint.pt"), checkpoint, task.agent)
+        task.counters = load_checkpoint(os.path.join(task.path, "checkpoint.pt"), checkpoint, task.agent)
         task.rng = np.random.default_rng([args.seed, len(replay)])  # fresh stream: resume is not bit-identical
-    task.sampler = ChunkSampler(replay, args.batch_size, args.seq_len,
-                                np.random.default_rng([task.seed, len(replay), 1]), task.device, args.prefetch)
+    task.batch_rng = np.random.default_rng([task.seed, len(replay), 1])
     task.logger = Logger(task.path, args)
     for folder in (["videos"] if args.capture_video else []) + (["addressing"] if task.addressing else []):
         os.makedirs(os.path.join(task.path, folder), exist_ok=True)
@@ -1772,47 +1850,47 @@ def train_round(task: Task):
     step, the batch mix and the agent's step on the device. Its metrics stay on the device until the round ends."""
     from tqdm import tqdm
 
-    args, state = task.args, task.state
-    if state.get("round_at") != len(task.replay):
-        state["round_at"], state["round_left"] = len(task.replay), args.updates_per_episode * args.num_envs
-    rows, timings, picks, done = [], {}, [], 0
-    round_start, todo = time.time(), state["round_left"]
+    args, counters = task.args, task.counters
+    if counters.get("round_at") != len(task.replay):
+        counters["round_at"], counters["round_left"] = len(task.replay), args.updates_per_episode * args.num_envs
+    update_metrics, timings, picks, done = [], {}, [], 0
+    round_start, todo = time.time(), counters["round_left"]
     round_bar = tqdm(total=todo, unit="update", desc="updates", leave=False, dynamic_ncols=True,
                      disable=task.progress.disable)
-    for x, waited in task.sampler.batches(todo):
+    for x, waited in sample_batches(task.replay, args.batch_size, args.seq_len, task.batch_rng, task.device, todo):
         if STOP["signal"]:  # finish the current update, not the round
             break
-        plan = plan_update(args, task.multitask, task.addressing, task.rng, task.device, task.name, state["updates"])
+        plan = plan_update(args, task.multitask, task.addressing, task.rng, task.device, task.name, counters["updates"])
         out = task.step(x, plan)
         out["timings"]["batch_sampling"] += waited
-        state["updates"], done = state["updates"] + 1, done + 1
-        sync_slow_target(task.agent, state["updates"], args.slow_target_every)
+        counters["updates"], done = counters["updates"] + 1, done + 1
+        sync_slow_target(task.agent, counters["updates"], args.slow_target_every)
         if not task.noticed:  # the first update of this process: on a CPU, what the run would cost
             task.noticed, notice = True, first_update_notice(args, task.device, task.env_steps,
                                                              time.time() - round_start)
             if notice:
                 task.progress.write(notice)
-        rows.append({k: v.detach() for k, v in out["metrics"].items()})
+        update_metrics.append({k: v.detach() for k, v in out["metrics"].items()})
         for k, v in out["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
-        if plan.get("mixed"):
+        if out["picks"] is not None:  # a mixed batch: what it borrowed
             picks.append(out["picks"])
         round_bar.update()  # no host sync: tqdm only reads the clock
         if task.progress.disable and time.time() - task.last_line >= args.log_interval_seconds:
             print(round_line(task.env_steps, args.total_steps, done, todo, time.time() - round_start), flush=True)
             task.last_line = time.time()
     round_bar.close()
-    return rows, timings, picks, done
+    return update_metrics, timings, picks, done
 
 
-def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int) -> dict:
+def round_metrics(task: Task, update_metrics: list, timings: dict, picks: list, done: int) -> dict:
     """The round's means over the updates that logged each key, read from the device once, and checked."""
     sums, counts = {}, {}
-    for row in rows:
+    for row in update_metrics:
         for k, v in row.items():
             sums[k], counts[k] = sums.get(k, 0.0) + v, counts.get(k, 0) + 1
     metrics = {k: v.item() / counts[k] for k, v in sums.items()}
-    check_finite(task, rows, metrics, done)
+    check_finite(task, update_metrics, metrics, done)
     if "addressing/refresh_seconds" in sums:  # a sum of refreshes, not a per-update mean
         metrics["addressing/refresh_seconds"] = sums["addressing/refresh_seconds"].item()
     metrics.update({f"time/{k}_per_update": v / max(done, 1) for k, v in timings.items()})
@@ -1821,16 +1899,16 @@ def round_metrics(task: Task, rows: list, timings: dict, picks: list, done: int)
             chosen = torch.stack([j for _, j in picks]).cpu().numpy()  # (mixed updates, borrow)
             picks = [(ids[0][j], ids[1][j]) for (ids, _), j in zip(picks, chosen)]
         metrics.update(picks_metrics(picks, task.multitask, task.addressing, done, task.args.seq_len))
-    metrics["charts/updates"] = task.state["updates"]
+    metrics["charts/updates"] = task.counters["updates"]
     return metrics
 
 
-def end_round(task: Task, rows: list, timings: dict, picks: list, done: int):
+def end_round(task: Task, update_metrics: list, timings: dict, picks: list, done: int):
     """After a round: its metrics, then (when it did any update) the checkpoints and the log line, then the stop
     check, and the round's pictures: open-loop predictions (--capture-video) and what q̂ picks."""
     args = task.args
-    metrics = round_metrics(task, rows, timings, picks, done)
-    task.state["round_left"] -= done
+    metrics = round_metrics(task, update_metrics, timings, picks, done)
+    task.counters["round_left"] -= done
     if done:  # the checkpoints first: a kill between the two loses this row rather than repeating it
         save_checkpoints(task)
         task.logger.log(task.env_steps, metrics)
@@ -1846,7 +1924,7 @@ def draw_addressing(task: Task):
     """Every --address-plot-every episodes: q̂ over D for 16 current chunks (report.addressing_figure), as a PNG
     and in TensorBoard."""
     addressing, multitask = task.addressing, task.multitask
-    if addressing is None or addressing.D is None or len(task.replay) % task.args.address_plot_every:
+    if addressing is None or addressing.candidate_embeddings is None or len(task.replay) % task.args.address_plot_every:
         return
     from report import addressing_figure  # the plotting lives in report.py
 
@@ -1862,8 +1940,9 @@ def draw_addressing(task: Task):
 def evaluate_if_due(task: Task):
     """Every --eval-every env steps once prefilled: --eval-episodes episodes with the actor's mode, logged as eval/
     at the current step, then a checkpoint (a resumed run does not repeat this evaluation)."""
-    args, policy, state = task.args, task.policy, task.state
-    if not (args.eval_episodes and task.env_steps >= state["next_eval"] and len(task.replay) >= args.prefill_episodes):
+    args, policy, counters = task.args, task.policy, task.counters
+    due = args.eval_episodes and task.env_steps >= counters["next_eval"]
+    if not (due and len(task.replay) >= args.prefill_episodes):
         return
     episodes = []
     for i in range(args.eval_episodes):
@@ -1875,8 +1954,8 @@ def evaluate_if_due(task: Task):
         if frames:
             write_gif(os.path.join(task.path, "videos", f"eval_{task.env_steps:08d}.gif"), frames)
     eval_metrics = episode_metrics("eval", episodes)
-    while state["next_eval"] <= task.env_steps:
-        state["next_eval"] += args.eval_every
+    while counters["next_eval"] <= task.env_steps:
+        counters["next_eval"] += args.eval_every
     save_checkpoints(task)
     task.logger.log(task.env_steps, eval_metrics)
     task.progress.write(f"step {task.env_steps}: " + ", ".join(f"{k} {v:.2f}" for k, v in eval_metrics.items()))
@@ -1911,25 +1990,8 @@ def collect(task: Task):
         task.last_line = time.time()
 
 
-def main(args: Args, given: frozenset = frozenset()):
-    """Everything that can be checked (flags, env ids, prior episodes, the resumed folder and its checkpoints) is
-    checked before the run folder is created or touched."""
-    args = resolve_defaults(apply_preset(args, set(given)))
-    check_args(args)
-    args, run_path = resolve_run(args, set(given))
-    device = resolve_device(args.device)
-    if args.cuda_graph is None:  # the default: CUDA graphs wherever there is CUDA (saved so in args.json)
-        args = dataclasses.replace(args, cuda_graph=device.type == "cuda")
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    rng = np.random.default_rng(args.seed)
-    tasks = task_list(args)
-    probe = make_env(args, tasks[0], args.seed)
-    obs_shape, action_size = probe.observation_space.shape, probe.action_space.shape[0]
-    probe.close()
-
-    # the multitask buffer M: prior episodes (the same K are drawn again on resume: same seed, same files)
+def load_multitask_buffer(args: Args, obs_shape, action_size: int, rng) -> Replay:
+    """M: the prior episodes (the same K are drawn again on resume: the same seed, the same files)."""
     multitask = Replay()
     if args.prior_dirs:
         for episode in load_prior_episodes(args.prior_dirs, args.prior_min_return, args.prior_max_episodes,
@@ -1939,25 +2001,31 @@ def main(args: Args, given: frozenset = frozenset()):
         print(f"multitask buffer: {len(multitask)} prior episodes {counts}, "
               f"{multitask.memory_bytes() / 2**30:.2f} GiB in memory", flush=True)
         check_prior_episodes(args, multitask)
+    return multitask
+
+
+def main(args: Args, given: frozenset = frozenset()):
+    """Everything that can be checked (flags, env ids, prior episodes, the resumed folder and its checkpoints) is
+    checked before the run folder is created or touched."""
+    args, run_path, device = start_run(args, given)  # section 10: the checked args, the run folder's path, the device
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    tasks = task_list(args)
+    probe = make_env(args, tasks[0], args.seed)
+    obs_shape, action_size = probe.observation_space.shape, probe.action_space.shape[0]
+    probe.close()
+    multitask = load_multitask_buffer(args, obs_shape, action_size, rng)
     task_paths = [run_path] if len(tasks) == 1 else [os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
                                                      for k, env_id in enumerate(tasks)]
-    checkpoints = {p: read_checkpoint(os.path.join(p, "checkpoint.pt"), args) for p in task_paths}
     address_path = os.path.join(run_path, "address.pt")
-    saved_address = read_checkpoint(address_path, args)
-    lock = open_run(args, run_path, rewrite_args=bool(given & set(RESUME_FLAGS)))  # noqa: F841 (held till exit)
-    STOP["run_path"] = run_path
-    signal.signal(signal.SIGINT, request_stop)
-    signal.signal(signal.SIGTERM, request_stop)
+    checkpoints, saved_address, lock = open_run_folder(args, run_path, task_paths, address_path, given)  # noqa: F841
     if args.collect_expert:
         return collect_expert_episodes(args, run_path)
-    addressing = None
-    if args.method in ADDRESSED_METHODS:
-        addressing = Addressing(obs_shape, action_size, args, device)
-        if saved_address is not None:
-            load_state(address_path, addressing.net, saved_address["net"])
-            if addressing.x_net is not addressing.net:  # --address-x-net frozen: its saved initial weights
-                load_state(address_path, addressing.x_net, saved_address["x_net"])
-            load_optimizer(addressing.opt, saved_address["opt"])
+    addressing = Addressing(obs_shape, action_size, args, device) if args.method in ADDRESSED_METHODS else None
+    if addressing is not None and saved_address is not None:
+        load_addressing(address_path, addressing, saved_address)
 
     # Algorithm 1: tasks in order; the agent restarts per task, M and f_φ carry over
     for k, (env_id, task_path) in enumerate(zip(tasks, task_paths)):
@@ -1979,39 +2047,38 @@ def set_speed_options(module: nn.Module, precision: str, channels_last: bool) ->
     return module
 
 
-class ChunkSampler:
-    """The current-task chunks x of the coming updates (--prefetch: batch k+1 is sampled, and pinned for CUDA, in a
-    background thread while update k trains). Its own random stream: the same batches with or without prefetch."""
+def padded_pool(pool: Pool, cap: int) -> Pool:
+    """--cuda-graph: the pool's chunks, embeddings and mask padded to a power of two (at most --address-candidates)
+    rows, so that a captured update serves until M outgrows it; q̂ never picks the padding (pool.valid)."""
+    real = len(pool.embeddings)
+    size = min(1 << (real - 1).bit_length(), cap)  # refresh embeds at most cap candidates
+    pad = lambda t: torch.cat([t, t.new_zeros((size - len(t), *t.shape[1:]))])  # noqa: E731
+    return Pool(pool.ids, {k: pad(v) for k, v in pool.chunks.items()}, pad(pool.reward_mask), pad(pool.embeddings),
+                torch.arange(size, device=pool.embeddings.device) < real)  # (N_p, ...)
 
-    def __init__(self, replay: Replay, n: int, seq_len: int, rng: np.random.Generator, device, prefetch: bool):
-        self.replay, self.n, self.seq_len, self.rng, self.device = replay, n, seq_len, rng, torch.device(device)
-        self.pool = ThreadPoolExecutor(1, thread_name_prefix="prefetch") if prefetch else None
 
-    def _sample(self) -> dict:
-        batch = {k: torch.from_numpy(v) for k, v in self.replay.sample(self.n, self.seq_len, self.rng).items()}
-        if self.device.type == "cuda":  # page-locked memory: the copy to the GPU runs asynchronously
-            batch = {k: v.pin_memory() for k, v in batch.items()}
-        return batch
+@contextlib.contextmanager
+def timed(timings: dict, key: str):
+    """Adds the block's wall time to timings[key]: the logs' time/<key>_per_update."""
+    t0 = time.perf_counter()
+    yield
+    timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
 
-    def batches(self, count: int):
-        """Yields (x on the device, seconds the caller waited for it) `count` times; the replay must not change
-        while the generator runs (the training loop adds episodes only between rounds of updates)."""
-        pending = self.pool.submit(self._sample) if self.pool else None
-        for i in range(count):
-            t0 = time.perf_counter()
-            batch = pending.result() if self.pool else self._sample()
-            if self.pool and i + 1 < count:
-                pending = self.pool.submit(self._sample)
-            yield to_torch(batch, self.device), time.perf_counter() - t0
 
-    def close(self):
-        if self.pool:
-            self.pool.shutdown()
+def graph_inputs(x: dict, plan: UpdatePlan) -> dict:
+    """Every tensor an update reads, by name: the static inputs of its CUDA graph."""
+    inputs = {f"x.{k}": v for k, v in x.items()}
+    inputs.update({f"m_batch.{k}": v for k, v in (plan.m_batch or {}).items()})
+    if plan.pool is not None:
+        inputs.update({f"pool.chunks.{k}": v for k, v in plan.pool.chunks.items()})
+        inputs.update({f"pool.{k}": getattr(plan.pool, k) for k in ("reward_mask", "embeddings", "valid")
+                       if getattr(plan.pool, k) is not None})
+    return inputs
 
 
 class GraphedUpdate:
     """--cuda-graph: `update` captured as CUDA graphs and replayed, one launch instead of ~1,000. A graph has fixed
-    shapes: one per kind of update (its tensors' shapes; and mixed or not where that decides the model step). The
+    shapes: one per kind of update (its tensors' shapes, and mixed or not: α decides which rows are borrowed). The
     first `warmup` updates of a kind run eagerly on a side stream, as a capture needs (cuBLAS, the allocator and the
     optimisers' state set up). Each replay first copies x and the plan into static tensors that all graphs share (the
     memory-mode pool only after a refresh made a new one). A capture that fails prints one line; the run goes on
@@ -2022,13 +2089,9 @@ class GraphedUpdate:
         self.graphs, self.seen, self.failed, self.stream, self.mempool = {}, {}, False, None, None
         self.static = {}  # (name, shape) -> [the graphs' input tensor, the tensor last copied into it]
 
-    def __call__(self, x: dict, plan: dict) -> dict:
-        inputs = {f"x.{k}": v for k, v in x.items()}  # name -> tensor: everything the graph reads
-        for part in ("m_batch", "pool"):
-            inputs.update({f"{part}.{k}": v for k, v in plan.get(part, {}).items()})
-        inputs.update({k: v for k, v in plan.items() if isinstance(v, torch.Tensor)})
-        key = (tuple((k, tuple(v.shape)) for k, v in inputs.items()), mixed_skips_model_step(self.args) and
-               plan.get("mixed"))
+    def __call__(self, x: dict, plan: UpdatePlan) -> dict:
+        inputs = graph_inputs(x, plan)  # name -> tensor: everything the graph reads
+        key = (tuple((k, tuple(v.shape)) for k, v in inputs.items()), plan.mixed)
         if self.failed or (key not in self.graphs and self.seen.get(key, 0) < self.warmup):
             self.seen[key] = self.seen.get(key, 0) + 1
             return self.on_side_stream(lambda: update(self.agent, self.addressing, x, plan, self.args))
@@ -2050,18 +2113,18 @@ class GraphedUpdate:
         graph.replay()
         metrics = dict(zip(graph.metric_names, graph.metrics.clone().unbind()))
         timings = {"batch_sampling": 0.0, "graph_replay": time.perf_counter() - t0}
-        if "refresh_seconds" in plan:
-            metrics["addressing/refresh_seconds"] = torch.tensor(plan["refresh_seconds"])
-            timings["addressing"] = plan["refresh_seconds"]
-        picks = (plan["pool_ids"], graph.picks.clone()) if plan.get("mixed") else None
+        if plan.refresh_seconds is not None:
+            metrics["addressing/refresh_seconds"] = torch.tensor(plan.refresh_seconds)
+            timings["addressing"] = plan.refresh_seconds
+        picks = (plan.pool.ids, graph.picks.clone()) if plan.mixed else None
         return {"metrics": metrics, "timings": timings, "picks": picks}
 
-    def capture(self, key: tuple, inputs: dict, plan: dict) -> types.SimpleNamespace:
+    def capture(self, key: tuple, inputs: dict, plan: UpdatePlan) -> types.SimpleNamespace:
         """Record `update` on the static inputs; the metrics it returns become one vector. A memory-mode pool padded
         to another size retires the graphs of the old size (it may shrink too: a refresh's random phases change the
         count of candidate chunks, so near a power of two the padding can switch back and forth, each switch a new
         capture), and the static tensors no graph reads any more."""
-        pool_rows = lambda k: dict(k[0]).get("pool_embed")  # noqa: E731
+        pool_rows = lambda k: dict(k[0]).get("pool.embeddings")  # noqa: E731
         self.graphs = {k: g for k, g in self.graphs.items() if pool_rows(k) == pool_rows(key)}
         wanted = {entry for k in [key, *self.graphs] for entry in k[0]}
         self.static = {k: v for k, v in self.static.items() if k in wanted}
@@ -2069,12 +2132,11 @@ class GraphedUpdate:
         static = {}
         for name, v in inputs.items():
             static[name] = self.static.setdefault((name, tuple(v.shape)), [v.clone(), v])[0]
-        x = {k[2:]: v for k, v in static.items() if k.startswith("x.")}
-        static_plan = {k: plan[k] for k in ("mixed", "pool_ids") if k in plan}
-        static_plan.update({k: v for k, v in static.items() if "." not in k})
-        for part in ("m_batch", "pool"):
-            if part in plan:
-                static_plan[part] = {k.split(".", 1)[1]: v for k, v in static.items() if k.startswith(part + ".")}
+        part = lambda prefix: {k[len(prefix):]: v for k, v in static.items() if k.startswith(prefix)}  # noqa: E731
+        x, static_plan = part("x."), UpdatePlan(plan.mixed, part("m_batch.") or None)
+        if plan.pool is not None:
+            static_plan.pool = Pool(plan.pool.ids, part("pool.chunks."), static.get("pool.reward_mask"),
+                                    static.get("pool.embeddings"), static.get("pool.valid"))
 
         def recorded():
             out = update(self.agent, self.addressing, x, static_plan, self.args)
@@ -2088,7 +2150,7 @@ class GraphedUpdate:
 
     def record(self, fn):
         """fn captured as a CUDA graph (its kernels are recorded, not run): (replay, fn's outputs as static tensors).
-        One memory pool serves every graph (they never run at once); thread_local: the prefetch thread may pin."""
+        One memory pool serves every graph (they never run at once)."""
         graph = torch.cuda.CUDAGraph()
         if self.addressing is not None:  # the picks' own generator: each replay advances it as eager draws would
             graph.register_generator_state(self.addressing.generator)
@@ -2190,7 +2252,7 @@ def given_flags(argv: list) -> set:
 # the flags that may be given beside --resume (they change neither the networks nor what was collected); the other
 # flags come from the run's args.json
 RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
-                "plain_log", "log_interval_seconds", "precision", "channels_last", "prefetch", "cuda_graph")
+                "plain_log", "log_interval_seconds", "precision", "channels_last", "cuda_graph")
 
 
 # flags added after runs were saved, with the value that was those runs' only behaviour: an args.json without one
@@ -2274,6 +2336,18 @@ def resolve_run(args: Args, given: set):
     return resumed, args.resume
 
 
+def start_run(args: Args, given: frozenset):
+    """The run's args (--preset's, the defaults that depend on the env, or --resume's saved ones) checked, its
+    folder's path and its device: nothing written yet."""
+    args = resolve_defaults(apply_preset(args, set(given)))
+    check_args(args)
+    args, run_path = resolve_run(args, set(given))
+    device = resolve_device(args.device)
+    if args.cuda_graph is None:  # the default: CUDA graphs wherever there is CUDA (saved so in args.json)
+        args = dataclasses.replace(args, cuda_graph=device.type == "cuda")
+    return args, run_path, device
+
+
 def open_run(args: Args, run_path: str, rewrite_args: bool):
     """Create (or reopen) the run folder and lock it for this process (the lock goes with the process, even on
     kill -9): a second writer gets one line. Writes args.json for a new run, or a resumed one given RESUME_FLAGS."""
@@ -2293,6 +2367,27 @@ def open_run(args: Args, run_path: str, rewrite_args: bool):
             json.dump(dataclasses.asdict(dataclasses.replace(args, resume=None)), f, indent=2)
         os.replace(path + ".tmp", path)
     return lock
+
+
+def open_run_folder(args: Args, run_path: str, task_paths: list, address_path: str, given: frozenset):
+    """Each task's checkpoint and f_φ's read (and checked) before the folder is touched; then the folder made and
+    locked, and SIGINT/SIGTERM set to stop at the next safe point. Returns the checkpoints by task folder, f_φ's, and
+    the lock (held till the process exits)."""
+    checkpoints = {p: read_checkpoint(os.path.join(p, "checkpoint.pt"), args) for p in task_paths}
+    saved_address = read_checkpoint(address_path, args)
+    lock = open_run(args, run_path, rewrite_args=bool(given & set(RESUME_FLAGS)))
+    STOP["run_path"] = run_path
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+    return checkpoints, saved_address, lock
+
+
+def load_addressing(path: str, addressing: "Addressing", saved: dict):
+    """f_φ, its frozen copy (--address-x-net frozen: its saved initial weights) and its optimiser from address.pt."""
+    load_state(path, addressing.net, saved["net"])
+    if addressing.x_net is not addressing.net:
+        load_state(path, addressing.x_net, saved["x_net"])
+    load_optimizer(addressing.opt, saved["opt"])
 
 
 STOP = {"signal": None, "run_path": None}  # set by SIGINT/SIGTERM: the loops stop at their next safe point
@@ -2388,22 +2483,22 @@ def load_checkpoint(path: str, payload: dict, agent: Agent) -> dict:
 
 def save_checkpoints(task: Task):
     """checkpoint.pt (agent, optimisers, state, RNG states) and address.pt (f_φ, its frozen copy, its optimiser)."""
-    save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, task.state, task.args)
+    save_checkpoint(os.path.join(task.path, "checkpoint.pt"), task.agent, task.counters, task.args)
     if task.addressing is not None:
         net, x_net, opt = task.addressing.net, task.addressing.x_net, task.addressing.opt
         write_checkpoint(task.address_path, {"net": net.state_dict(), "x_net": x_net.state_dict(),
                                              "opt": opt.state_dict(), "args": checked_args(task.args)})
 
 
-def check_finite(task: Task, rows: list, metrics: dict, done: int):
+def check_finite(task: Task, update_metrics: list, metrics: dict, done: int):
     """One check per round (the sums carry any NaN or inf): the round is then neither saved nor logged, and the run
     stops with a line naming the first bad metric and its update."""
     if all(map(np.isfinite, metrics.values())) and all(p.isfinite().all() for p in task.agent.parameters()):
         return
-    bad = [(i, k) for i, row in enumerate(rows) for k, v in row.items() if not v.isfinite()]
+    bad = [(i, k) for i, row in enumerate(update_metrics) for k, v in row.items() if not v.isfinite()]
     i, key = (bad or [(done - 1, "weights")])[0]
-    task.logger.log(task.env_steps, {"errors/non_finite_update": task.state["updates"] - done + i + 1})
-    raise UsageError(f"non-finite {key} at update {task.state['updates'] - done + i + 1}: stopped without saving "
+    task.logger.log(task.env_steps, {"errors/non_finite_update": task.counters["updates"] - done + i + 1})
+    raise UsageError(f"non-finite {key} at update {task.counters['updates'] - done + i + 1}: stopped without saving "
                      f"its round (is a learning rate too high?)", 1)
 
 

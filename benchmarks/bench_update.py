@@ -6,7 +6,7 @@ synthetic episodes (no environment in the timing), on the CPU and on CUDA when p
 per second with the agent acting, in 1 env and in --num-envs envs. The first line names the date, the machine, torch,
 the thread count, the speed flags and what was found about native bf16 on each device timed.
 
-Every flag of the script is accepted too (--precision, --channels-last, --prefetch, --device, --obs-type,
+Every flag of the script is accepted too (--precision, --channels-last, --device, --obs-type,
 --image-size, --env-id, --num-envs, --address-imagine-starts, --vrama-select, network sizes, ...).
 
 Run (from the repository root):
@@ -203,12 +203,20 @@ def timed_update(S, setup, batches, multitask, rng, device: torch.device, i: int
     return time.perf_counter() - t0, out
 
 
+def sampled_batches(S, replay, n: int, length: int, rng, device, count: int):
+    """The script's current-task batches, (x, seconds waited) `count` times: its sample_batches, or the ChunkSampler
+    of a version from before 2026-12-07 (--compare-to), without its prefetch thread."""
+    if hasattr(S, "sample_batches"):
+        return S.sample_batches(replay, n, length, rng, device, count)
+    return S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(count)
+
+
 def warmed_up(S, options: Options, args, setup, n: int, length: int, replay, multitask, rng, device, measured: int = 1):
     """Runs a method_setup's warm-up updates (--warmup) on chunks (n, L) and returns the batches, at the one of the
     update to measure next, and that update's index (--profile and --count-ops measure one update, --share as many
     as fit in its seconds: `measured` batches follow the warm-up's)."""
     warmup = warmup_updates(options, args)
-    batches = S.ChunkSampler(replay, n, length, rng, device, prefetch=False).batches(warmup + measured)
+    batches = sampled_batches(S, replay, n, length, rng, device, warmup + measured)
     for i in range(warmup):
         one_update(S, setup, next(batches)[0], multitask, rng, device, i)
     return batches, warmup
@@ -273,9 +281,8 @@ def time_updates(S, options: Options, args, device: torch.device, obs_shape, act
         for method in options.methods:
             setup = method_setup(S, args, method, n, length, obs_shape, action_size, device)
             totals = dict.fromkeys(PARTS + ["total"], 0.0)
-            sampler = S.ChunkSampler(replay, n, length, rng, device, args.prefetch)
             warmup = warmup_updates(options, args)
-            batches = sampler.batches(options.updates + warmup)
+            batches = sampled_batches(S, replay, n, length, rng, device, options.updates + warmup)
             for i in range(options.updates + warmup):  # the warm-up (update 0 refreshes D, once per C)
                 seconds, out = timed_update(S, setup, batches, multitask, rng, device, i)
                 if i >= warmup:
@@ -320,14 +327,13 @@ def paired_timing(S, options: Options, args, device: torch.device, obs_shape, ac
           + " ".join(f"{p:>14}" for p in PARTS) + f"  {second}/{first} (paired median), pairs {first} faster",
           flush=True)
     for method in options.methods:
-        setups, samplers, batches = {}, {}, {}
+        setups, batches = {}, {}
         seconds, parts = {v: [] for v in versions}, {v: {p: [] for p in PARTS} for v in versions}
         for label, (module, version_args) in versions.items():
             torch.manual_seed(args.seed)  # the same initial weights for both
             setups[label] = method_setup(module, version_args, method, n, length, obs_shape, action_size, device)
-            samplers[label] = module.ChunkSampler(replay, n, length, np.random.default_rng(args.seed), device,
-                                                  setups[label][0].prefetch)
-            batches[label] = samplers[label].batches(options.updates + warmup)
+            batches[label] = sampled_batches(module, replay, n, length, np.random.default_rng(args.seed), device,
+                                             options.updates + warmup)
         for i in range(options.updates + warmup):  # the warm-up rounds (round 0 refreshes D)
             for label in (list(versions) if i % 2 else list(versions)[::-1]):
                 took, out = timed_update(versions[label][0], setups[label], batches[label], multitask, rng, device, i)

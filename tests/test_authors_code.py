@@ -86,8 +86,8 @@ def test_logit_scale_sharpens_q_hat_over_d():
     for scale in (1.0, 10.0):
         torch.manual_seed(0)
         addressing = rd.Addressing((3,), 2, dataclasses.replace(args, address_logit_scale=scale), "cpu")
-        addressing.D = torch.randn(7, 8)
-        logits = addressing.embed_x(x).detach() @ addressing.D.T  # (3, 7)
+        addressing.candidate_embeddings = torch.randn(7, 8)
+        logits = addressing.embed_x(x).detach() @ addressing.candidate_embeddings.T  # (3, 7)
         assert torch.allclose(addressing.probs(x), (scale * logits).softmax(-1), atol=1e-6)
     assert rd.Args().address_logit_scale == 1.0
 
@@ -101,7 +101,7 @@ def test_fresh_candidates_are_scored_per_mixed_batch_without_d(monkeypatch):
                    **{**SMALL, "batch_size": 8})
     addressing = rd.Addressing((3,), 2, args, "cpu")
     seen = _spy_update(monkeypatch, args, current, multitask, addressing)
-    assert addressing.D is None  # no embeddings of M kept between updates
+    assert addressing.candidate_embeddings is None  # no embeddings of M kept between updates
     episode_ids, starts = addressing.candidates  # the m fresh chunks q̂ picked from
     assert len(episode_ids) == args.address_batch
     borrowed = seen["batch"]["obs"][4:, 0, 0]  # the 4 picked rows: the first obs of each, 1 or 2 by episode

@@ -248,7 +248,7 @@ def test_benchmark_ab_flag_times_on_against_off_in_pairs(tmp_path):
             "--stoch-size", "4", "--hidden-size", "8", "--mlp-units", "8", "--address-units", "8", "--horizon", "3"]
     copy = tmp_path / "copy.py"  # --compare-to: this script against another version of it (here, itself)
     copy.write_text(open(os.path.join(ROOT, "rama_dreamer.py")).read())
-    for flags, labels in ((["--ab-flag", "prefetch"], ("on", "off")), (["--compare-to", str(copy)], ("this", "copy.py"))):
+    for flags, labels in ((["--ab-flag", "channels-last"], ("on", "off")), (["--compare-to", str(copy)], ("this", "copy.py"))):
         proc = bench(*flags, "--methods", "dreamer", "rrama", "--updates", "3", *tiny)
         header, columns, *rows = proc.stdout.splitlines()
         assert columns.split()[:5] == ["device", "size", "method", "version", "median"]

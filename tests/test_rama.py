@@ -461,7 +461,7 @@ def test_offline_score_by_hand():
     from tools.addressing_offline import score
 
     class Fixed:  # an addressing model with given embeddings: f(x) = 0 and 1 for the 2 rows, f(M_j) = ln 2, 0, 0
-        D = torch.tensor([[np.log(2)], [0.0], [0.0]])
+        candidate_embeddings = torch.tensor([[np.log(2)], [0.0], [0.0]])
         logit_scale = 1.0
 
         def refresh(self, multitask, seq_len, cap, rng):

@@ -1,5 +1,5 @@
 """The fast paths compute what the plain path computes: same losses and gradients on a fixed batch (within a stated
-tolerance), same batches with and without prefetch, same episodes with and without parallel envs."""
+tolerance), the batches of the task's own stream, same episodes with and without parallel envs."""
 import copy
 import dataclasses
 import os
@@ -155,17 +155,13 @@ def test_dreamer_v1_order_imagines_with_the_model_before_its_step():
                               rd.nn.utils.parameters_to_vector(agent.actor.parameters()))
 
 
-@pytest.mark.parametrize("prefetch", [False, True])
-def test_chunk_sampler_same_batches_with_and_without_prefetch(prefetch):
-    """With or without the background thread, the sampler gives the batches its random stream draws: those of
-    replay.sample with the same generator, in order (prefetch draws batch k+1 while k trains, never out of turn)."""
+def test_sample_batches_draws_the_tasks_own_stream_in_order():
+    """The current-task batches are those of replay.sample with the task's generator, in order."""
     rng = np.random.default_rng(0)
     replay = synthetic_replay((3,), 2, 3, 20, rng)
     reference_rng = np.random.default_rng(7)
     expected = [rd.to_torch(replay.sample(4, 5, reference_rng), "cpu") for _ in range(3)]
-    sampler = rd.ChunkSampler(replay, 4, 5, np.random.default_rng(7), "cpu", prefetch=prefetch)
-    got = [x for x, _ in sampler.batches(3)]
-    sampler.close()
+    got = [x for x, _ in rd.sample_batches(replay, 4, 5, np.random.default_rng(7), "cpu", 3)]
     assert len(got) == 3
     for x, y in zip(got, expected):
         assert x["obs"].shape == (4, 5, 3)
@@ -210,7 +206,7 @@ def test_parallel_envs_play_the_sequential_episodes():
 
 @pytest.mark.slow
 def test_script_with_fast_paths_runs(tmp_path):
-    """bf16 where this CPU has it natively (else refused, see below), prefetch and two collecting subprocesses
+    """bf16 where this CPU has it natively (else refused, see below) and two collecting subprocesses
     together, end to end (pixels, tiny sizes)."""
     precision = "bf16" if rd.native_bf16(torch.device("cpu"))[0] else "fp32"
     proc = run_script("rama_dreamer.py", "--env-id", "dmc/walker-walk", *TINY, "--run-dir", str(tmp_path),

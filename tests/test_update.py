@@ -31,8 +31,8 @@ def buffers(rng):
 def reference_update(agent, addressing, x, plan, args, train_index, mix_picks, multitask):
     """The update before it had a fixed shape (commit 33e394e), with the picks given: the batch is x, or β·n rows of
     x and the picked chunks gathered by the host when mixed; masks only when mixed."""
-    if "m_batch" in plan:
-        m = plan["m_batch"]
+    if plan.m_batch is not None:
+        m = plan.m_batch
         logits = rd.address_logits(addressing.embed_x(x), addressing.embed(m), addressing.stop_grad_x)
         if args.method == "vrama":
             probs = logits.softmax(-1)
@@ -50,10 +50,10 @@ def reference_update(agent, addressing, x, plan, args, train_index, mix_picks, m
             loss = rd.reinforce_loss(logits, train_index, advantage, args.address_standardize)
         rd.optimizer_step(addressing.opt, loss, addressing.net.parameters(), args.address_grad_clip)
     batch, reward_mask, model_mask = x, None, None
-    address_metrics = {"addressing/loss": loss.detach()} if "m_batch" in plan else {}
-    if plan.get("mixed"):
+    address_metrics = {"addressing/loss": loss.detach()} if plan.m_batch is not None else {}
+    if plan.mixed:
         keep = rd.keep_rows(args)
-        ids = (plan["pool_ids"][0][mix_picks.numpy()], plan["pool_ids"][1][mix_picks.numpy()])
+        ids = (plan.pool.ids[0][mix_picks.numpy()], plan.pool.ids[1][mix_picks.numpy()])
         borrowed = rd.to_torch(multitask.gather(*ids, args.seq_len), "cpu")
         batch = {k: torch.cat([x[k][:keep], borrowed[k]], 0) for k in x}
         reward_mask = torch.tensor([1.0] * keep + [float(multitask.tasks[e] == "now") for e in ids[0]])
@@ -89,16 +89,16 @@ def test_fixed_shape_update_matches_the_variable_shape_update(monkeypatch, name)
                 out = rd.update(agent, addressing, x, plan, args)
             else:
                 plan = plans[i]
-                train_index = next(picks) if "m_batch" in plan else None
+                train_index = next(picks) if plan.m_batch is not None else None
                 mix_picks = (next(picks) if addressing else torch.arange(args.batch_size - rd.keep_rows(args))) \
-                    if "pool" in plan else None
+                    if plan.pool is not None else None
                 out = reference_update(agent, addressing, x, plan, args, train_index, mix_picks, multitask)
             losses.append({k: float(v.detach()) for k, v in out["metrics"].items()
                            if k.startswith(("losses/", "addressing/loss"))})
         params = {**{f"agent.{k}": v for k, v in agent.state_dict().items()},
                   **({f"phi.{k}": v for k, v in addressing.net.state_dict().items()} if addressing else {})}
         versions[version] = losses, params
-    assert [p.get("mixed", False) for p in plans] == ([False] * 3 if name == "dreamer" else [True, False, True])
+    assert [p.mixed for p in plans] == ([False] * 3 if name == "dreamer" else [True, False, True])
     (fixed_losses, fixed_params), (ref_losses, ref_params) = versions["fixed"], versions["reference"]
     for fixed, ref in zip(fixed_losses, ref_losses):  # only the order of operations differs: fp32 rounding
         assert fixed.keys() == ref.keys() and all(fixed[k] == pytest.approx(ref[k], rel=1e-4, abs=1e-5) for k in ref)

@@ -141,14 +141,14 @@ def score(addressing, multitask, x: dict, candidates, num_prior: int, seq_len: i
     episode_ids, stored, predicted = candidates
     addressing.refresh(multitask, seq_len, cap, np.random.default_rng(0))  # D for the same candidates each time
     assert np.array_equal(addressing.candidates[0], episode_ids)
-    logits = (addressing.embed_x(x).double() @ addressing.D.double().T).cpu()  # (rows, N_c), as Addressing.probs
+    logits = (addressing.embed_x(x).double() @ addressing.candidate_embeddings.double().T).cpu()  # (rows, N_c), as Addressing.probs
     q = logits.softmax(-1).numpy()  # (rows, N_c)
     entropy = -(q * logits.log_softmax(-1).numpy()).sum(-1)  # (rows,)
     return {"predicted": float((q @ predicted).mean() - predicted.mean()),
             "stored": float((q @ stored).mean() - stored.mean()),
             "prior_mass": float((q @ (episode_ids < num_prior)).mean()),
             "entropy": float(entropy.mean() / np.log(q.shape[1])),
-            "embedding_norm": float(addressing.D.double().norm(dim=-1).mean() / addressing.logit_scale),  # ‖f(M_j)‖
+            "embedding_norm": float(addressing.candidate_embeddings.double().norm(dim=-1).mean() / addressing.logit_scale),  # ‖f(M_j)‖
             "logit_sd": float(logits.numpy().std(-1).mean())}  # the spread of f(x_i)ᵀ D_j over the candidates
 
 
