@@ -326,6 +326,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     differences = welch_differences(scores, tasks, methods, against)
     lines += difference_table(differences, tasks, methods, decimals, against)
     lines += diagnostics_table(runs, tasks, methods, decimals)
+    lines += pick_source_table(runs, tasks, methods)
     lines += reference_table(runs, tasks, methods, reference, decimals) if reference else []
     lines += levels_table(runs, tasks, methods, key, levels, decimals) if levels else []
     figure = "curves.png"
@@ -499,6 +500,32 @@ def diagnostics_table(runs: list, tasks: list, methods: list, decimals: int) -> 
                          f"{mean(diags, 'picked_return', decimals)} / {mean(diags, 'candidate_return', decimals)} | "
                          f"{mean(diags, 'picked_chunk', decimals)} / {mean(diags, 'candidate_chunk', decimals)} | "
                          f"{mean(diags, 'entropy', 2)} | {mean(diags, 'bandit_gain', decimals)} |")
+    return lines
+
+
+def pick_source_table(runs: list, tasks: list, methods: list) -> list:
+    """Markdown lines: per task and prior-data method, the share of the mixed batches' picks by the policy that
+    collected the picked episode (addressing/pick_source/<policy>: `expert` and `random` for a scripted M, `agent`
+    for a learning run's episodes), each run's mean over its rounds, then the mean over seeds; none when no run
+    logged them (runs before 2026-12-07, or an M of one policy)."""
+    prefix, cells = "addressing/pick_source/", {}
+    for r in runs:
+        means = key_means(r["metrics_path"]) if r["method"] != "dreamer" else {}
+        shares = {k[len(prefix):]: v for k, v in means.items() if k.startswith(prefix)}
+        if shares:
+            cells.setdefault((r["task"], r["method"]), []).append(shares)
+    sources = sorted({name for diags in cells.values() for shares in diags for name in shares})
+    if not sources:
+        return []
+    lines = ["", "Where the picks came from: the share of the mixed batches' borrowed chunks by the policy that "
+             "collected their episode (each run's mean over its rounds, then the mean over its seeds).", "",
+             "| task | method | runs | " + " | ".join(sources) + " |", "|" + " --- |" * (3 + len(sources))]
+    for task in tasks:
+        for method in methods:
+            diags = cells.get((task, method))
+            if diags:
+                shares = [fmt(float(np.mean([d.get(name, 0.0) for d in diags])), 2) for name in sources]
+                lines.append(f"| {task} | {method_name(method)} | {len(diags)} | " + " | ".join(shares) + " |")
     return lines
 
 

@@ -170,6 +170,26 @@ def test_diagnostics_table_by_hand(tmp_path):
                     "| walk | RRAMa | 2 | 0.60 | 0.25 | 10.0 / 6.0 | 3.0 / 2.0 | 0.81 | 1.5 |"]
 
 
+def test_pick_source_table_by_hand(tmp_path):
+    exp = tmp_path / "exp"
+    for name, rows in [("box__rrama__s1", [{"expert": 0.2, "random": 0.8}, {"expert": 0.6, "random": 0.4}]),
+                       ("box__rrama__s2", [{"expert": 1.0}]),  # no random pick: a share of 0
+                       ("box__uniform__s1", [{"expert": 0.5, "random": 0.5}])]:
+        run = write_run(exp, name, [1.0], {"env_id": "kitchen/bluebox", "method": name.split("__")[1], "seed": 1})
+        with open(run / "metrics.jsonl", "a") as f:
+            f.write("".join(json.dumps({"step": 100 * (i + 2), **{f"addressing/pick_source/{k}": v
+                                                                  for k, v in row.items()}}) + "\n"
+                            for i, row in enumerate(rows)))
+    write_run(exp, "box__dreamer__s1", [1.0])
+    runs = report.load_experiment(str(exp), "charts/episodic_return")
+    lines = report.pick_source_table(runs, ["box"], report.method_order({r["method"] for r in runs}))
+    assert "| task | method | runs | expert | random |" in lines
+    # RRAMa: seed 1's means 0.4 / 0.6, seed 2's 1.0 / 0 -> 0.70 / 0.30
+    assert [line for line in lines if line.startswith("| box")] == [
+        "| box | No addressing (uniform) | 1 | 0.50 | 0.50 |", "| box | RRAMa | 2 | 0.70 | 0.30 |"]
+    assert report.pick_source_table([r for r in runs if r["method"] == "dreamer"], ["box"], ["dreamer"]) == []
+
+
 def test_scores_figure_draws_each_seed_in_the_tables_order(tmp_path):
     """scores.png: per task, the methods in the tables' order (those with runs there), each with its seeds' numbers."""
     scores = {("walk", "dreamer"): [1.0, 2.0], ("walk", "rrama"): [4.0], ("run", "rrama"): [7.0, 9.0, 8.0]}
