@@ -36,14 +36,18 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering; must be set be
 import contextlib
 import copy
 import dataclasses
+import errno
 import fcntl
 import functools
 import glob
 import importlib.util
+import io
 import json
 import multiprocessing
 import pickle
 import random
+import re
+import shutil
 import signal
 import sys
 import time
@@ -275,6 +279,8 @@ class Args:
     """log to Weights & Biases as well (needs `pip install wandb`)"""
     wandb_project: str = "rama"
     """the W&B project"""
+    force: bool = False
+    """start even when M and the replay will not fit in the memory available (this process only; --resume checks)"""
 
     # Speed (none changes what is learned, up to floating-point rounding)
     device: str = "auto"
@@ -586,12 +592,11 @@ def collect_expert_episodes(args: Args, run_path: str):
 # reward[t] (reward[0] = 0); terminal[t] marks a true end (not a time limit). One `.npz` file per episode,
 # named `{index:06d}-{agent_steps}.npz`, so the step count of a run is recoverable from the file names alone.
 def save_episode(directory: str, index: int, episode: dict) -> str:
-    """Write atomically: a temp file in the same folder, then a rename, so a kill never leaves half a file."""
+    """Write atomically (disk_write: a temp file in the same folder, then a rename), so a kill or a full disk never
+    leaves half a file."""
     path = os.path.join(directory, f"{index:06d}-{len(episode['reward']) - 1}.npz")
-    tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
-    with open(tmp, "wb") as f:
+    with disk_write(path) as f:
         np.savez_compressed(f, **episode)
-    os.replace(tmp, path)
     return path
 
 
@@ -1683,7 +1688,7 @@ class Logger:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(run_path)
-        self.jsonl = open(os.path.join(run_path, "metrics.jsonl"), "a")
+        self.jsonl = os.path.join(run_path, "metrics.jsonl")
         self.wandb = None
         if args.track:  # check_args made sure wandb imports
             import wandb
@@ -1695,14 +1700,13 @@ class Logger:
         metrics = {k: float(v) for k, v in metrics.items()}
         for key, value in metrics.items():
             self.writer.add_scalar(key, value, step)
-        self.jsonl.write(json.dumps({"step": step, **metrics}) + "\n")
-        self.jsonl.flush()
+        with disk_write(self.jsonl, "a") as f:  # a line whole or not at all
+            f.write(json.dumps({"step": step, **metrics}) + "\n")
         if self.wandb:
             self.wandb.log(metrics, step=step)
 
     def close(self):
         self.writer.close()
-        self.jsonl.close()
         if self.wandb:
             self.wandb.finish()
 
@@ -1819,8 +1823,8 @@ def open_task(task: Task, checkpoint: Optional[dict]) -> Task:
     task.agent = Agent(task.envs.single_observation_space.shape, task.envs.single_action_space.shape[0],
                        args).to(task.device)
     task.policy = Policy(task.agent, task.device, args.eval_action)
-    task.step = GraphedUpdate(task.agent, task.addressing, args) if args.cuda_graph else functools.partial(
-        update, task.agent, task.addressing, args=args)  # (x, plan) -> the update's output
+    task.step = first_update_fits(GraphedUpdate(task.agent, task.addressing, args) if args.cuda_graph else
+                                  functools.partial(update, task.agent, task.addressing, args=args), args, task.device)
     # updates: done so far; round_at, round_left: the episode count of the current round of C updates and the
     # updates it still has to do (a run stopped mid-round finishes it; one killed after a round does not redo it)
     task.counters = {"updates": 0, "next_eval": args.eval_every}
@@ -2015,6 +2019,7 @@ def main(args: Args, given: frozenset = frozenset()):
     tasks = task_list(args)
     probe = make_env(args, tasks[0], args.seed)
     obs_shape, action_size = probe.observation_space.shape, probe.action_space.shape[0]
+    check_memory(args, probe.observation_space, action_size, len(tasks))  # section 10: M and the replay must fit
     probe.close()
     multitask = load_multitask_buffer(args, obs_shape, action_size, rng)
     task_paths = [run_path] if len(tasks) == 1 else [os.path.join(run_path, f"{k}_{env_id.split('/')[-1]}")
@@ -2228,6 +2233,47 @@ def first_update_notice(args: Args, device, env_steps: int, seconds: float) -> O
             + ". A one-minute look on a CPU: python sweep.py sweeps/smoke.toml --workers 2, or --obs-type state")
 
 
+def check_memory(args: Args, obs_space, action_size: int, num_tasks: int, meminfo: str = "/proc/meminfo"):
+    """Refuse at start a run whose M and replay will not fit in memory by its end (the kernel's OOM killer would end
+    it hours in, without a line of its own): the K longest prior episodes (lengths from the file names) and each
+    task's own episodes up to --total-steps, against MemAvailable. --force starts anyway."""
+    if args.force or args.collect_expert or not os.path.exists(meminfo):  # not Linux: nothing to weigh it against
+        return
+    step = obs_space.dtype.itemsize * int(np.prod(obs_space.shape)) + 4 * action_size + 5  # + reward, terminal
+    names = [p for d in args.prior_dirs for folder in episode_folders(d) for p in list_episode_files(folder)]
+    lengths = sorted(int((re.findall(r"-(\d+)\.npz$", p) or [episode_agent_steps(args)])[0]) + 1
+                     for p in names)[-args.prior_max_episodes:]  # NNNNNN-LEN.npz, else this run's length
+    episodes = -(-args.total_steps // (episode_agent_steps(args) * args.action_repeat)) + args.num_envs - 1
+    prior, own = sum(lengths) * step, num_tasks * episodes * (episode_agent_steps(args) + 1) * step
+    with open(meminfo) as f:
+        available = next(int(line.split()[1]) * 1024 for line in f if line.startswith("MemAvailable:"))
+    if prior + own > available:
+        raise UsageError(f"M ({len(lengths)} prior episodes, {prior / 2**30:.1f} GiB) and the replay up to "
+                         f"--total-steps {args.total_steps:,} ({own / 2**30:.1f} GiB) will not fit in the "
+                         f"{available / 2**30:.1f} GiB of memory available: lower --prior-max-episodes or "
+                         f"--total-steps, use --obs-type state, or give --force")
+
+
+def first_update_fits(step, args: Args, device):
+    """The update, with an out-of-memory at the first one (the paper's size on a small card) as one line naming
+    sizes that fit better instead of a traceback: the update's activations grow with --batch-size x --seq-len."""
+    first = [True]
+
+    def guarded(x, plan):
+        try:
+            return step(x, plan)
+        except torch.OutOfMemoryError:
+            if not first[0]:
+                raise
+            n, length = args.batch_size, args.seq_len
+            raise UsageError(f"out of memory on {device} at the first update (--batch-size {n} --seq-len {length}): "
+                             f"--batch-size {max(n // 2, 1)} or --seq-len {max(length // 2, 2)} halve its activations",
+                             1) from None
+        finally:
+            first[0] = False
+    return guarded
+
+
 class UsageError(Exception):
     """Bad input from the command line or from files, or a run that had to stop: printed as one line; exit code 2,
     or `code` (1: non-finite losses; 128 + signal number: stopped by SIGINT/SIGTERM)."""
@@ -2249,10 +2295,41 @@ def given_flags(argv: list) -> set:
     return {n if n in names else n[3:] for n in given if n in names or n[3:] in names}
 
 
+def parse_args(argv: list) -> Tuple[Args, set]:
+    """The command line as Args, and the flags it names. tyro reports a parse error as a box of 4-9 lines: here it is
+    one line like every other bad input, `--flag: what is wrong` (exit 2); --help still prints tyro's help."""
+    box = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(box):
+            args = tyro.cli(Args, args=argv)
+    except SystemExit as e:
+        if e.code:  # --help exits with 0, its text on stdout
+            raise UsageError(parse_error_line(box.getvalue())) from None
+        raise
+    sys.stderr.write(box.getvalue())  # tyro's warnings, if any
+    return args, given_flags(argv)
+
+
+def parse_error_line(box: str) -> str:
+    """tyro's error box as one line: a bad value, a bad choice (with the allowed ones), a missing value, an unknown
+    flag (with tyro's nearest one); any other error as the box's words."""
+    text = " ".join(re.sub(r"\x1b\[[0-9;]*m|[│╭╮╰╯─]", " ", box).split())  # the box's words, on one line
+    if m := re.search(r"Error parsing (\S+): (.*?) Argument helptext", text):
+        return f"{m[1]}: {m[2]}"
+    if m := re.search(r"invalid choice '(.*?)' for argument '(\S+)'\. Expected one of \((.*?)\)\.", text):
+        return f"{m[2]}: {m[1]!r} is not one of {m[3].replace(chr(39), '')}"
+    if m := re.search(r"Missing value for argument '(\S+)'", text):
+        return f"{m[1]}: needs a value"
+    if m := re.search(r"Unrecognized options: (\S+?),? .*?(?:Perhaps you meant: (--\S+)|For full)", text):
+        return f"{m[1]}: " + ("unknown flag" if m[1].startswith("-") else "a value no flag takes") + (
+            f" (did you mean {m[2]}?)" if m[2] else "")
+    return text.split(" For full helptext")[0]
+
+
 # the flags that may be given beside --resume (they change neither the networks nor what was collected); the other
 # flags come from the run's args.json
 RESUME_FLAGS = ("total_steps", "device", "eval_every", "eval_episodes", "capture_video", "track", "wandb_project",
-                "plain_log", "log_interval_seconds", "precision", "channels_last", "cuda_graph")
+                "plain_log", "log_interval_seconds", "precision", "channels_last", "cuda_graph", "force")
 
 
 # flags added after runs were saved, with the value that was those runs' only behaviour: an args.json without one
@@ -2261,7 +2338,7 @@ ADDED_FLAGS = {"address_x_net": "shared", "preset": None, "address_adam_eps": No
                "address_candidates_mode": "memory", "address_logit_scale": 1.0, "address_oversample_ends": False,
                "own_episodes_in_m": True, "reward_mask_borrowed": "other-tasks", "vrama_objective": "imagine",
                "addressed_wm_rule": "rows", "cuda_graph": None,
-               "init": "torch", "eval_action": "mean"}
+               "init": "torch", "eval_action": "mean", "force": False}
 
 
 def check_args(args: Args) -> None:
@@ -2327,8 +2404,9 @@ def resolve_run(args: Args, given: set):
             raise UsageError(f"saved by an older version of this script (no {', '.join(missing)}); resume it with that "
                              f"version")
         fields = {f.name: saved[f.name] for f in dataclasses.fields(Args)}  # flags since removed are dropped
-        # --cuda-graph not given: the default of the device resumed on (graphs or not, the update's math is the same)
-        given_now = {"cuda_graph": None, **{k: getattr(args, k) for k in given & set(RESUME_FLAGS)}}
+        # --cuda-graph not given: the default of the device resumed on (graphs or not, the update's math is the same);
+        # --force holds for the process that was given it
+        given_now = {"cuda_graph": None, "force": False, **{k: getattr(args, k) for k in given & set(RESUME_FLAGS)}}
         resumed = dataclasses.replace(Args(**fields), resume=args.resume, **given_now)
         check_args(resumed)
     except (ValueError, TypeError, AttributeError, UsageError) as e:  # JSONDecodeError is a ValueError
@@ -2362,10 +2440,8 @@ def open_run(args: Args, run_path: str, rewrite_args: bool):
     except OSError:
         raise UsageError(f"{run_path}: another process is writing this run folder (it holds its .lock)") from None
     if rewrite_args or not args.resume:
-        path = os.path.join(run_path, "args.json")
-        with open(path + ".tmp", "w") as f:
+        with disk_write(os.path.join(run_path, "args.json"), "w") as f:
             json.dump(dataclasses.asdict(dataclasses.replace(args, resume=None)), f, indent=2)
-        os.replace(path + ".tmp", path)
     return lock
 
 
@@ -2417,13 +2493,42 @@ def checked_args(args: Args) -> dict:
     return {k: v for k, v in saved.items() if k not in RESUME_FLAGS + ("resume", "run_dir")}
 
 
-def write_checkpoint(path: str, payload: dict):
-    """Atomic like the episodes (a temp file, then a rename); the one before stays as PATH.prev until the new one is
-    in place, for a damaged newest file to fall back to."""
-    torch.save(payload, path + ".tmp")
-    if os.path.exists(path):
+@contextlib.contextmanager
+def disk_write(path: str, mode: str = "wb", keep_prev: bool = False):
+    """PATH written whole or not at all: a new file goes to a temp file beside it, then is renamed over PATH (the old
+    one kept as PATH.prev with keep_prev); an append ("a") is cut back to its old size on failure. A kill or a full
+    disk leaves every earlier file complete and no temp file; a full disk stops the run with one line naming the
+    file and the free space (--resume continues once space is freed)."""
+    append = mode.startswith("a")
+    target = path if append else os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.tmp")
+    size = os.path.getsize(path) if append and os.path.exists(path) else 0
+    try:
+        with open(target, mode) as f:
+            yield f
+    except BaseException as e:
+        with contextlib.suppress(OSError):
+            os.truncate(target, size) if append else os.remove(target)
+        if isinstance(e, OSError) and e.errno == errno.ENOSPC:
+            free = shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free
+            raise UsageError(f"{path}: no space left on the device ({free / 2**20:,.0f} MiB free): stopped, the "
+                             f"files before it complete{resume_hint()}", 1) from None
+        raise
+    if keep_prev and os.path.exists(path):
         os.replace(path, path + ".prev")
-    os.replace(path + ".tmp", path)
+    if not append:
+        os.replace(target, path)
+
+
+def write_checkpoint(path: str, payload: dict):
+    """Atomic like the episodes; the one before stays as PATH.prev until the new one is in place, for a damaged newest
+    file to fall back to."""
+    with disk_write(path, keep_prev=True) as f:
+        torch.save(payload, f)
+
+
+# what checkpoints written before issue 126 pickled besides tensors and plain types: numpy's RNG state, an ndarray of
+# uint32. Allowed to load so that those runs resume; anything else pickled is refused (loading it could run code)
+OLD_NUMPY_STATE = [np._core.multiarray._reconstruct, np.ndarray, np.dtype, np.dtypes.UInt32DType]
 
 
 def read_checkpoint(path: str, args: Args) -> Optional[dict]:
@@ -2434,9 +2539,14 @@ def read_checkpoint(path: str, args: Args) -> Optional[dict]:
         if not os.path.exists(candidate):
             continue
         try:
-            payload = torch.load(candidate, map_location="cpu", weights_only=False)
+            with torch.serialization.safe_globals(OLD_NUMPY_STATE):
+                payload = torch.load(candidate, map_location="cpu", weights_only=True)
             saved = payload.get("args", {})  # checkpoints written before it was stored: shapes are checked on load
         except Exception as e:
+            foreign = re.search(r"GLOBAL (\S+) was not an allowed global", str(e))
+            if foreign:  # weights_only refused to build it
+                raise UsageError(f"{candidate}: holds a pickled {foreign[1]}, not only tensors and plain types: not "
+                                 f"loaded, as loading it could run code") from None
             unreadable.append(f"{candidate}: not a readable checkpoint ({type(e).__name__}: {str(e)[:80]!r})")
             continue
         now = checked_args(args)
@@ -2459,8 +2569,9 @@ def load_state(path: str, module, state_dict: dict):
 
 
 def save_checkpoint(path: str, agent: Agent, state: dict, args: Args):
+    name, keys, *rest = np.random.get_state()  # numpy's uint32 keys as a list: a weights_only load builds no ndarray
     payload = {"agent": agent.state_dict(), "optimizers": {k: o.state_dict() for k, o in agent.optimizers().items()},
-               "state": state, "rng": {"python": random.getstate(), "numpy": np.random.get_state(),
+               "state": state, "rng": {"python": random.getstate(), "numpy": (name, keys.tolist(), *rest),
                                        "torch": torch.get_rng_state()}, "args": checked_args(args)}
     write_checkpoint(path, payload)
 
@@ -2504,7 +2615,7 @@ def check_finite(task: Task, update_metrics: list, metrics: dict, done: int):
 
 if __name__ == "__main__":
     try:
-        main(tyro.cli(Args), given_flags(sys.argv[1:]))
+        main(*parse_args(sys.argv[1:]))
     except UsageError as e:
         print(f"{'error: ' if e.code < 128 else ''}{e}", file=sys.stderr)
         sys.exit(e.code)

@@ -1,5 +1,6 @@
-"""Reliability (issue 14): bad input is one line on stderr with nothing written, non-finite losses stop the run
-unsaved, one writer per run folder, SIGINT/SIGTERM stop with a folder that resumes to the same update count."""
+"""Reliability (issues 14, 126): bad input is one line on stderr with nothing written, non-finite losses stop the run
+unsaved, one writer per run folder, SIGINT/SIGTERM stop with a folder that resumes to the same update count; a full
+disk, memory that will not hold M and the replay, and checkpoints that hold pickled objects are each one line."""
 import glob
 import json
 import os
@@ -119,12 +120,36 @@ def test_bad_prior_dirs_write_nothing_in_metaworld(tmp_path, prior):
     assert not runs.exists()
 
 
-def test_parse_errors_are_not_tracebacks(tmp_path):
+PARSE_CASES = {  # (script, flags, the line on stderr): tyro's boxes were 4-9 lines
+    "bad int": ("rama_dreamer.py", ["--batch-size", "abc"],
+                "error: --batch-size: invalid literal for int() with base 10: 'abc'"),
+    "bad float": ("rama_metaworld.py", ["--model-lr", "fast"], "error: --model-lr: could not convert"),
+    "bad choice": ("rama_dreamer.py", ["--method", "foo"],
+                   "error: --method: 'foo' is not one of dreamer, uniform, vrama, rrama, rbrama"),
+    "bad choice, metaworld": ("rama_metaworld.py", ["--task-set", "foo"],
+                              "error: --task-set: 'foo' is not one of train, new"),
+    "bad optional bool": ("rama_dreamer.py", ["--cuda-graph", "maybe"], "error: --cuda-graph: 'maybe' is not one of"),
+    "unknown flag": ("rama_dreamer.py", ["--no-such-flag"], "error: --no-such-flag: unknown flag"),
+    "typo": ("rama_metaworld.py", ["--batchsize", "3"],
+             "error: --batchsize: unknown flag (did you mean --batch-size?)"),
+    "no value": ("rama_dreamer.py", ["--batch-size"], "error: --batch-size: needs a value"),
+}
+
+
+@pytest.mark.parametrize("case", list(PARSE_CASES))
+def test_parse_errors_are_one_line(tmp_path, case):
+    script, flags, line = PARSE_CASES[case]
     runs = tmp_path / "runs"
-    for flags in (["--batch-size", "abc"], ["--no-such-flag"]):
-        proc = run(*STATE, "--run-dir", str(runs), *flags)
-        assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
+    proc = run("--run-dir", str(runs), *flags, script=script)
+    assert proc.returncode == 2 and len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert proc.stderr.startswith(line), proc.stderr
     assert not runs.exists()
+
+
+@pytest.mark.parametrize("script", ["rama_dreamer.py", "rama_metaworld.py"])
+def test_help_still_prints(script):
+    proc = run("--help", script=script)
+    assert proc.returncode == 0 and "--batch-size" in proc.stdout and "--force" in proc.stdout, proc.stderr
 
 
 @pytest.fixture(scope="module")
@@ -165,6 +190,15 @@ def write_text(name, text):
     return write
 
 
+def pickled_object(run_path):
+    """A checkpoint.pt that runs code when unpickled: it would create a file in the run folder."""
+    class Payload:
+        def __reduce__(self):
+            return open, (os.path.join(run_path, "code_ran"), "w")
+
+    torch.save({"state": Payload()}, os.path.join(run_path, "checkpoint.pt"))
+
+
 RESUME_CASES = {  # (what is done to the run folder, flags beside --resume, what the line must name)
     "other flags": (None, ["--env-id", "dmc/walker-walk", "--obs-type", "pixels", "--total-steps", "500"],
                     ["--env-id, --obs-type may not"]),
@@ -176,6 +210,7 @@ RESUME_CASES = {  # (what is done to the run folder, flags beside --resume, what
                               ["checkpoint.pt: not a readable checkpoint", "checkpoint.pt.prev"]),
     "broken args.json": (write_text("args.json", "{"), [], ["args.json"]),
     "unknown env in args.json": (edit_args(env_id="dmc/walker-fly"), [], ["args.json", "--env-id"]),
+    "pickled object": (pickled_object, [], ["checkpoint.pt: holds a pickled", "could run code"]),  # not unpickled
 }
 
 
@@ -307,3 +342,117 @@ def test_a_signal_mid_round_stops_cleanly_and_resumes_to_the_same_update_count(t
     logged = updates_logged(run_path)
     assert (saved_state(run_path)["updates"], logged[-1]) == uninterrupted_updates == (200, 200)
     assert logged == sorted(set(logged))  # no row repeated
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Issue 126: a full disk, memory, out of memory at the first update, checkpoints that would run code on loading
+# ---------------------------------------------------------------------------------------------------------------
+def run_patched(patch: str, *flags, script="rama_dreamer.py"):
+    """The script in a subprocess after `patch` (Python code) ran in it: a fault injected below the script."""
+    code = (f"{patch}\nimport runpy, sys\nsys.argv = {[script, *flags]!r}\n"
+            f"runpy.run_path({script!r}, run_name='__main__')")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
+
+
+def full_disk(pattern: str, nth: int) -> str:
+    """The nth file opened for writing whose path matches pattern fills the disk: half its bytes land, then ENOSPC."""
+    return f"""
+import builtins, errno, io, re
+real_open, seen = builtins.open, [0]
+class Full(io.FileIO):
+    def write(self, b):
+        super().write(bytes(b)[:len(b) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device")
+def fake_open(file, mode="r", *args, **kwargs):
+    if mode[0] in "wa" and re.search({pattern!r}, str(file)):
+        seen[0] += 1
+        if seen[0] == {nth}:
+            raw = io.BufferedWriter(Full(file, mode[0]))
+            return raw if "b" in mode else io.TextIOWrapper(raw)
+    return real_open(file, mode, *args, **kwargs)
+builtins.open = fake_open
+"""
+
+
+FULL_DISK_CASES = {  # (the write that fails: its path's pattern, which one; extra flags; the file the line names)
+    "episode": (r"\.npz\.tmp$", 3, [], "000002-50.npz"),  # the third episode
+    "checkpoint": (r"checkpoint\.pt\.tmp$", 2, [], "checkpoint.pt"),  # the second round's checkpoint
+    "address.pt": (r"address\.pt\.tmp$", 2, ["--method", "rrama"], "address.pt"),
+    "metrics": (r"metrics\.jsonl$", 3, [], "metrics.jsonl"),  # the second episode's line
+}
+
+
+@pytest.mark.parametrize("case", list(FULL_DISK_CASES))
+def test_a_full_disk_stops_in_one_line_leaving_complete_files_and_resumes(tmp_path, case):
+    pattern, nth, flags, name = FULL_DISK_CASES[case]
+    proc = run_patched(full_disk(pattern, nth), *STATE, *flags, "--run-dir", str(tmp_path))
+    (run_path,) = glob.glob(os.path.join(tmp_path, "*"))
+    line = one_line_error(proc, name, "no space left on the device", "MiB free", f"--resume {run_path}")
+    assert proc.returncode == 1, line
+    assert not [f for f in snapshot(run_path) if f.endswith(".tmp")]  # no temp file left
+    episodes = rd.list_episode_files(os.path.join(run_path, "episodes"))
+    assert 0 < len(episodes) < 3  # stopped at once, before the run's third and last episode
+    for path in episodes:  # every episode complete
+        rd.load_episode(path)
+    for ckpt in glob.glob(os.path.join(run_path, "*.pt*")):  # every checkpoint loadable
+        torch.load(ckpt, weights_only=True)
+    assert read_metrics(run_path)  # every line whole
+    proc = run("--resume", run_path)  # space freed
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert len(rd.list_episode_files(os.path.join(run_path, "episodes"))) == 3
+    assert saved_state(run_path)["updates"] == 4  # as an uninterrupted run: 2 rounds of 2
+
+
+def test_a_run_that_will_not_fit_in_memory_is_refused_in_one_line(tmp_path):
+    runs = tmp_path / "runs"
+    proc = run(*STATE, "--total-steps", str(10**15), "--run-dir", str(runs))  # petabytes of replay
+    one_line_error(proc, "will not fit", "GiB of memory available", "--prior-max-episodes", "--obs-type state",
+                   "--force")
+    assert proc.returncode == 2 and not runs.exists()
+
+
+def test_memory_estimate_counts_k_prior_episodes_and_force_starts_anyway(tmp_path):
+    import gymnasium
+
+    prior = write_prior(tmp_path / "prior", (64, 64, 3), 1, np.uint8, episodes=10)  # 10 x 11 frames of 12 KB
+    space = gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8)
+    step = 64 * 64 * 3 + 4 + 5  # bytes: a frame, an action, a reward, a terminal
+    own = 2 * 51 * step  # --total-steps 200 at 100 env steps (50 agent steps) per episode: 2 episodes of 51 steps
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text(f"MemTotal: 100 kB\nMemAvailable: {(own + 5 * 11 * step) // 1024} kB\n")
+    args = rd.Args(env_id="dmc/cartpole-balance", method="uniform", total_steps=200, time_limit=100,
+                   prior_dirs=(prior,))
+    with pytest.raises(rd.UsageError, match=r"M \(10 prior episodes.*--prior-max-episodes"):
+        rd.check_memory(args, space, 1, 1, str(meminfo))
+    rd.check_memory(rd.dataclasses.replace(args, prior_max_episodes=4), space, 1, 1, str(meminfo))  # K = 4 fits
+    rd.check_memory(rd.dataclasses.replace(args, force=True), space, 1, 1, str(meminfo))
+    with pytest.raises(rd.UsageError, match="--total-steps 2,000"):  # 20 episodes of its own do not fit
+        rd.check_memory(rd.dataclasses.replace(args, prior_dirs=(), total_steps=2000), space, 1, 1, str(meminfo))
+
+
+OUT_OF_MEMORY = """
+import torch
+def out_of_memory(*args, **kwargs):
+    raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 20.00 GiB")
+torch.Tensor.backward = out_of_memory
+"""
+
+
+def test_out_of_memory_at_the_first_update_names_sizes_that_fit(tmp_path):
+    proc = run_patched(OUT_OF_MEMORY, *STATE, "--run-dir", str(tmp_path))
+    one_line_error(proc, "out of memory on cpu at the first update", "--batch-size 4 --seq-len 8",
+                   "--batch-size 2 or --seq-len 4", "halve its activations")
+    assert proc.returncode == 1
+
+
+def test_checkpoints_from_before_issue_126_load_and_new_ones_need_no_pickles(copy_of):
+    for name in ("checkpoint.pt", "checkpoint.pt.prev"):  # numpy's RNG state as an ndarray, as runs saved it before
+        path = os.path.join(copy_of, name)
+        payload = torch.load(path, weights_only=False)
+        payload["rng"]["numpy"] = np.random.get_state()
+        torch.save(payload, path)
+    proc = run("--resume", str(copy_of), "--total-steps", "400")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert saved_state(copy_of)["updates"] == 6
+    for name in ("checkpoint.pt", "checkpoint.pt.prev"):  # written now: tensors and plain types only
+        torch.load(os.path.join(copy_of, name), weights_only=True)

@@ -30,7 +30,8 @@ ARGS_HEADERS = ["# The run", "# Algorithm 2", "# Dreamer (v1): the world model",
                 "# Departures from the paper", "# Logging and run folders", "# Speed"]
 MACHINERY = ["GraphedUpdate", "padded_pool", "set_speed_options", "check_args", "resolve_run", "open_run",
              "open_run_folder", "request_stop", "write_checkpoint", "read_checkpoint", "save_checkpoint",
-             "load_checkpoint", "native_bf16", "UsageError"]
+             "load_checkpoint", "native_bf16", "UsageError", "parse_args", "disk_write", "check_memory",
+             "first_update_fits"]
 
 
 def test_each_script_reads_as_the_paper_then_its_machinery():
