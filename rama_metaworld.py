@@ -1753,16 +1753,16 @@ class Task:
     seed: int
     path: str  # its folder: the run folder, or <run>/<k>_<task> in a --task-sequence
     device: torch.device
-    replay: "Replay"  # M_τ
-    multitask: "Replay"  # M
-    addressing: Optional["Addressing"]  # f_φ (None for dreamer and uniform)
+    replay: Replay  # M_τ
+    multitask: Replay  # M
+    addressing: Optional[Addressing]  # f_φ (None for dreamer and uniform)
     rng: np.random.Generator
     address_path: str  # address.pt, the run's f_φ
     env_steps: int
     envs: Any = None  # the collecting envs and the evaluation env (open_task)
     eval_env: Any = None
-    agent: Optional["Agent"] = None
-    policy: Optional["Policy"] = None
+    agent: Optional[Agent] = None
+    policy: Optional[Policy] = None
     step: Any = None  # `update`, or its CUDA graphs (GraphedUpdate): (x, plan) -> the update's output
     batch_rng: Any = None  # the random stream of the x_i ~ M_τ (sample_batches)
     logger: Any = None

@@ -290,7 +290,6 @@ def time_updates(S, options: Options, args, device: torch.device, obs_shape, act
                     for k in PARTS:
                         totals[k] += out["timings"].get(k, 0.0) / options.updates
             reference = reference or totals["total"]
-            sampler.close()
             ROWS.append({"device": str(device), "size": size, "n": n, "L": length, "method": method,
                          "seconds": totals["total"], "vs_dreamer": totals["total"] / reference,
                          **{p: totals[p] for p in PARTS}, "flags": run_flags(args)})
@@ -341,8 +340,6 @@ def paired_timing(S, options: Options, args, device: torch.device, obs_shape, ac
                     seconds[label].append(took)
                     for p in PARTS:
                         parts[label][p].append(out["timings"].get(p, 0.0))
-        for sampler in samplers.values():
-            sampler.close()
         a, b = np.array(seconds[first]), np.array(seconds[second])  # (updates,) each
         for label in versions:
             ROWS.append({"device": device.type, "size": options.sizes[0], "method": method, "version": label,
