@@ -495,6 +495,7 @@ def collect_expert_episodes(args: Args, run_path: str):
             rng = np.random.default_rng([args.seed, index])  # episode k's own stream: a resumed collection matches
             episode = run_episodes(envs, expert if index < args.collect_expert else uniform,
                                    [args.seed * 1_000_003 + index], task)[0][0]
+            episode["policy"] = np.asarray("expert" if index < args.collect_expert else "random")  # M's make-up
             save_episode(episode_dir, index, episode)
     finally:
         envs.close()
@@ -542,12 +543,13 @@ class Replay:
     id, start): `gather` copies only the chunks, never whole episodes."""
 
     def __init__(self):
-        self.episodes, self.tasks, self.returns = [], [], []
+        self.episodes, self.tasks, self.returns, self.policies = [], [], [], []
         self._lengths = np.zeros(0, np.int64)  # (E,) steps per episode (T+1)
 
     def add(self, episode: dict):
         self.episodes.append(episode)
         self.tasks.append(str(episode["task"]))
+        self.policies.append(str(episode.get("policy", "agent")))  # what collected it: a learning agent, or a script
         self.returns.append(float(episode["reward"].sum()))
         self._lengths = np.append(self._lengths, len(episode["reward"]))
 
@@ -1487,7 +1489,8 @@ def update(agent: Agent, addressing: Optional[Addressing], x: dict, plan: Update
 
 def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressing], updates: int,
                   seq_len: int) -> dict:
-    """What the mixed batches borrowed: per-task fractions and stored returns of picks vs candidates."""
+    """What the mixed batches borrowed: per-task fractions (and per collecting policy, where M mixes a scripted
+    expert's, random or a learning agent's episodes) and stored returns of picks vs candidates."""
     picked = [e for p in picks for e in p[0]]
     metrics = {"addressing/mixed_batches": len(picks) / updates}
     if not picked:
@@ -1495,6 +1498,9 @@ def picks_metrics(picks: list, multitask: Replay, addressing: Optional[Addressin
     tasks = [multitask.tasks[e] for e in picked]
     for task in sorted(set(multitask.tasks)):
         metrics[f"addressing/pick_fraction/{task}"] = tasks.count(task) / len(tasks)
+    policies = [multitask.policies[e] for e in picked]
+    for policy in sorted(set(multitask.policies)) if len(set(multitask.policies)) > 1 else []:  # a scripted M
+        metrics[f"addressing/pick_source/{policy}"] = policies.count(policy) / len(policies)
     metrics["addressing/picked_return"] = float(np.mean([multitask.returns[e] for e in picked]))
     pool = addressing.candidates[0] if addressing is not None and addressing.candidates is not None \
         else np.arange(len(multitask))

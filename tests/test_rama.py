@@ -378,6 +378,16 @@ def test_picks_metrics_compare_picked_chunks_with_the_candidates():
     assert m["addressing/candidate_return"] == pytest.approx((15 + 15 + 50) / 3)
     assert m["addressing/picked_chunk_reward"] == pytest.approx((20 + 9) / 2)  # mean of per-update means
     assert m["addressing/candidate_chunk_reward"] == pytest.approx((1 + 5 + 20) / 3)
+    assert not any(k.startswith("addressing/pick_source/") for k in m)  # one policy in M: no split to report
+    # M of a scripted pusher's and random episodes (collect_expert_episodes tags them) beside the agent's own
+    replay.episodes[1]["policy"] = "expert"
+    mixed = rd.Replay()
+    for episode, policy in [(replay.episodes[0], None), (replay.episodes[1], "expert"), (replay.episodes[1], "random")]:
+        mixed.add({**episode, **({"policy": np.asarray(policy)} if policy else {})})
+    m = rd.picks_metrics([(np.array([1, 1, 2]), np.array([0, 1, 2])), (np.array([0]), np.array([0]))], mixed, None,
+                         updates=2, seq_len=2)
+    assert m["addressing/pick_source/expert"] == 0.5 and m["addressing/pick_source/random"] == 0.25
+    assert m["addressing/pick_source/agent"] == 0.25
 
 
 def metric_keys(run_path):
