@@ -29,7 +29,7 @@ FAMILIES = [("kitchen_bluebox", rama_dreamer, "kitchen/bluebox", {"kitchen_start
             ("metaworld_push", rama_metaworld, "metaworld/push", {"task_set": "new", "action_repeat": 2})]
 # sweeps/metaworld_table2.toml's cells (named by task) at rama_metaworld.py's default schedule (action repeat 1)
 TABLE2 = [(name.replace("-", "_"), rama_metaworld, f"metaworld/{name}", {"task_set": "new"})
-          for name in ("push", "dial-turn")]
+          for name in ("push", "dial-turn", "drawer-close")]
 # sweeps/kitchen_tables.toml's cells: Box and Box -> Cone (whose runs act on the cone), the paper's fixed start
 KITCHEN = [("box", rama_dreamer, "kitchen/bluebox", {"kitchen_start": "fixed"}),
            ("box_cone", rama_dreamer, "kitchen/bluecone", {"kitchen_start": "fixed"})]
@@ -65,7 +65,8 @@ def score(S, env_id: str, flags: dict, policy: str, episodes: int, seed: int = 1
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=10, help="episodes per policy and family")
-    parser.add_argument("--table2", action="store_true", help="score Table 2's tasks (push, dial-turn) instead")
+    parser.add_argument("--table2", action="store_true",
+                        help="score Table 2's tasks (push, dial-turn, drawer-close) instead")
     parser.add_argument("--kitchen", action="store_true", help="score the kitchen tables' cells instead")
     parser.add_argument("--out", default=None, help="the JSON to write (default: the chosen set's results folder)")
     cli = parser.parse_args()
