@@ -59,6 +59,8 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from sweep import OneLineParser  # noqa: E402 (argparse's errors as one line, as sweep.py's)
+
 METHOD_NAMES = {"dreamer": "Dreamer", "uniform": "No addressing (uniform)", "rrama": "RRAMa", "rbrama": "RbRAMa",
                 "vrama": "VRAMa"}  # the paper's row names, in its order
 PRESET_NAMES = {"authors-code": "authors' code"}  # a run made with --preset P is method "<method>@P"
@@ -68,21 +70,6 @@ def fail(message: str):
     """A bad input: one line on stderr, `error: ...`, and exit code 2, before anything is written."""
     print(f"error: {message}", file=sys.stderr)
     sys.exit(2)
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse's errors as one line, `error: --flag: ...`, exit code 2, as every other bad input here is reported:
-    argparse's own usage block would bury the line that matters."""
-
-    def error(self, message: str):
-        flags = [o for a in self._actions for o in a.option_strings if o.startswith("--") and o != "--help"]
-        named = re.match(r"argument (\S+?)(?:/\S+)?: (.*)", message, re.S)  # a bad value, a bad choice, no value
-        if named:
-            message = f"{named.group(1)}: {named.group(2)}"
-        elif message.startswith("unrecognized arguments: "):
-            first = message.split(": ", 1)[1].split()[0]
-            message = f"{first}: unknown flag (known: {', '.join(flags)})"
-        fail(message)
 
 
 def method_name(method: str) -> str:

@@ -388,25 +388,30 @@ def run_ray(todo: list, address: str, retries: int) -> list:
 
 class OneLineParser(argparse.ArgumentParser):
     """argparse's errors as one line, `error: --flag: ...`, exit code 2, as every other bad input here (and in the
-    training scripts) is reported: argparse's own usage block would bury the line that matters."""
+    training scripts) is reported: argparse's own usage block would bury the line that matters. report.py's parser
+    too. extra_positional and missing_positional word the errors of a parser's positional arguments."""
+    extra_positional = None  # the line for an argument no positional takes (None: as an unknown flag)
+    missing_positional = None  # the line for a missing positional argument (None: argparse's words)
 
     def error(self, message: str):
-        flags = [o for a in self._actions for o in a.option_strings if o.startswith("--") and o != "--help"]
         named = re.match(r"argument (\S+?)(?:/\S+)?: (.*)", message, re.S)  # a bad value, a bad choice, no value
         if named:
             message = f"{named.group(1)}: {named.group(2)}"
         elif message.startswith("unrecognized arguments: "):
             first = message.split(": ", 1)[1].split()[0]
-            message = (f"{first}: unknown flag (known: {', '.join(flags)})" if first.startswith("-")
-                       else f"{first}: one spec only (give the others' runs as cells of one spec)")
-        elif message.startswith("the following arguments are required: "):
-            message = f"{message.split(': ', 1)[1]}: missing (a sweep spec, e.g. sweeps/cartpole_tables.toml)"
+            flags = [o for a in self._actions for o in a.option_strings if o.startswith("--") and o != "--help"]
+            message = f"{first}: {self.extra_positional}" if self.extra_positional and not first.startswith("-") \
+                else f"{first}: unknown flag (known: {', '.join(flags)})"
+        elif self.missing_positional and message.startswith("the following arguments are required: "):
+            message = f"{message.split(': ', 1)[1]}: {self.missing_positional}"
         print(f"error: {message}", file=sys.stderr)
         sys.exit(2)
 
 
 def main():
     parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.extra_positional = "one spec only (give the others' runs as cells of one spec)"
+    parser.missing_positional = "missing (a sweep spec, e.g. sweeps/cartpole_tables.toml)"
     parser.add_argument("spec", help="a sweep spec (TOML), e.g. sweeps/cartpole_tables.toml")
     parser.add_argument("--workers", type=int, default=1, help="local backend: runs at a time (each gets cores / N threads, or "
                         "OMP_NUM_THREADS when set)")
