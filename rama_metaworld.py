@@ -1420,16 +1420,17 @@ class Addressing:
         if self.candidate_embeddings is not None and updates_done % args.address_refresh:
             return None
         t0 = time.perf_counter()
-        self.refresh(multitask, args.seq_len, args.address_candidates, rng)
+        chunks = self.refresh(multitask, args.seq_len, args.address_candidates, rng)
         # the candidates' mask values change only here (a task's first update refreshes: 0 updates done, or no D)
-        self.pool.reward_mask = borrowed_reward_mask(args, multitask, self.candidates[0], task_name, self.device)
+        reward_mask = borrowed_reward_mask(args, multitask, self.candidates[0], task_name, self.device)
+        self.pool = Pool(self.candidates, chunks, reward_mask, self.candidate_embeddings)
         if args.cuda_graph:
             self.pool = padded_pool(self.pool, args.address_candidates)
         return time.perf_counter() - t0
 
     @torch.no_grad()
     def refresh(self, multitask: Replay, seq_len: int, cap: int, rng, chunk_batch: int = 64):
-        """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks, and keep their chunks on the device (as
+        """Recompute D_j = f_φ(M_j) for a fresh set of candidate chunks; returns their chunks on the device (as
         stored: images uint8), for the updates to gather their picks from without the host."""
         self.candidates = multitask.grid_ids(seq_len, cap, rng)
         self.candidate_rewards = multitask.chunk_rewards(*self.candidates, seq_len)
@@ -1439,8 +1440,7 @@ class Addressing:
             parts.append(to_device(multitask.gather(*ids, seq_len), self.device))
             embeddings.append(self.embed(preprocess(parts[-1])))
         self.candidate_embeddings = torch.cat(embeddings, 0)  # (N_c, U)
-        chunks = {k: torch.cat([part[k] for part in parts], 0) for k in parts[0]}  # (N_c, L, ...)
-        self.pool = Pool(self.candidates, chunks, None, self.candidate_embeddings)
+        return {k: torch.cat([part[k] for part in parts], 0) for k in parts[0]}  # (N_c, L, ...)
 
     @torch.no_grad()
     def logits(self, x: dict, embeddings=None):
@@ -1467,7 +1467,7 @@ class Pool:
     """Chunks of M kept on the device for the borrowed rows of a mixed batch to be picked from."""
     ids: tuple  # (episode ids, starts) of the chunks in M, each (P,)
     chunks: dict  # as stored (images uint8): obs (P, L, ...), action (P, L, A), reward and terminal (P, L)
-    reward_mask: Optional[torch.Tensor]  # (P,) 1 where a borrowed chunk keeps its reward loss
+    reward_mask: torch.Tensor  # (P,) 1 where a borrowed chunk keeps its reward loss
     embeddings: Optional[torch.Tensor] = None  # (P, U): D over the candidates (memory mode); None: embedded at the pick
     valid: Optional[torch.Tensor] = None  # (P,) False on the rows --cuda-graph pads the pool with
 
