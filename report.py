@@ -313,6 +313,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     differences = welch_differences(scores, tasks, methods, against)
     lines += difference_table(differences, tasks, methods, decimals, against)
     lines += diagnostics_table(runs, tasks, methods, decimals)
+    lines += pick_task_table(runs, tasks, methods)
     lines += pick_source_table(runs, tasks, methods)
     lines += reference_table(runs, tasks, methods, reference, decimals) if reference else []
     lines += levels_table(runs, tasks, methods, key, levels, decimals) if levels else []
@@ -495,18 +496,34 @@ def pick_source_table(runs: list, tasks: list, methods: list) -> list:
     collected the picked episode (addressing/pick_source/<policy>: `expert` and `random` for a scripted M, `agent`
     for a learning run's episodes), each run's mean over its rounds, then the mean over seeds; none when no run
     logged them (runs before 2026-12-07, or an M of one policy)."""
-    prefix, cells = "addressing/pick_source/", {}
+    return share_table(runs, tasks, methods, "addressing/pick_source/", "Where the picks came from: the share of the "
+                       "mixed batches' borrowed chunks by the policy that collected their episode (each run's mean "
+                       "over its rounds, then the mean over its seeds).")
+
+
+def pick_task_table(runs: list, tasks: list, methods: list) -> list:
+    """Markdown lines: the same by the task of the picked episode (addressing/pick_fraction/<task>), where M holds
+    episodes of three tasks or more (with two, "from other tasks" in the diagnostics table says it all)."""
+    return share_table(runs, tasks, methods, "addressing/pick_fraction/", "Which tasks the picks came from: the "
+                       "share of the mixed batches' borrowed chunks by the task of their episode (each run's mean "
+                       "over its rounds, then the mean over its seeds).", min_sources=3)
+
+
+def share_table(runs: list, tasks: list, methods: list, prefix: str, intro: str, min_sources: int = 1) -> list:
+    """Markdown lines: per task and prior-data method, the mean over seeds of each run's mean over its rounds of the
+    metrics named prefix + <source>, a column per source (a run that never logged a source counts 0 for it); none
+    when fewer than min_sources sources were logged."""
+    cells = {}  # (task, method) -> [each seed's {source: mean share}]
     for r in runs:
         means = key_means(r["metrics_path"]) if r["method"] != "dreamer" else {}
         shares = {k[len(prefix):]: v for k, v in means.items() if k.startswith(prefix)}
         if shares:
             cells.setdefault((r["task"], r["method"]), []).append(shares)
     sources = sorted({name for diags in cells.values() for shares in diags for name in shares})
-    if not sources:
+    if len(sources) < max(min_sources, 1):
         return []
-    lines = ["", "Where the picks came from: the share of the mixed batches' borrowed chunks by the policy that "
-             "collected their episode (each run's mean over its rounds, then the mean over its seeds).", "",
-             "| task | method | runs | " + " | ".join(sources) + " |", "|" + " --- |" * (3 + len(sources))]
+    lines = ["", intro, "", "| task | method | runs | " + " | ".join(sources) + " |",
+             "|" + " --- |" * (3 + len(sources))]
     for task in tasks:
         for method in methods:
             diags = cells.get((task, method))

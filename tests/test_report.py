@@ -190,6 +190,28 @@ def test_pick_source_table_by_hand(tmp_path):
     assert report.pick_source_table([r for r in runs if r["method"] == "dreamer"], ["box"], ["dreamer"]) == []
 
 
+def test_pick_task_table_by_hand_and_only_for_three_tasks(tmp_path):
+    """The picks' tasks, per cell: shown where M holds three tasks (walk -> run: stand, walk and run's own), not
+    where it holds two (the diagnostics table's "from other tasks" says that)."""
+    exp = tmp_path / "exp"
+    for name, rows in [("walk_run__rrama__s1", [{"walker-stand": 0.8, "walker-walk": 0.2},
+                                                {"walker-stand": 0.4, "walker-walk": 0.4, "walker-run": 0.2}]),
+                       ("walk_run__rrama__s2", [{"walker-walk": 1.0}])]:
+        run = write_run(exp, name, [1.0], {"env_id": "dmc/walker-run", "method": "rrama", "seed": 1})
+        with open(run / "metrics.jsonl", "a") as f:
+            f.write("".join(json.dumps({"step": 100 * (i + 2), **{f"addressing/pick_fraction/{k}": v
+                                                                  for k, v in row.items()}}) + "\n"
+                            for i, row in enumerate(rows)))
+    runs = report.load_experiment(str(exp), "charts/episodic_return")
+    lines = report.pick_task_table(runs, ["walk_run"], ["rrama"])
+    assert "| task | method | runs | walker-run | walker-stand | walker-walk |" in lines
+    # seed 1's means: run 0.2 (one round logged it), stand 0.6, walk 0.3; seed 2's 0, 0, 1 -> 0.10, 0.30, 0.65
+    assert [line for line in lines if line.startswith("| walk_run")] == [
+        "| walk_run | RRAMa | 2 | 0.10 | 0.30 | 0.65 |"]
+    two = [r for r in runs if r["name"].endswith("s2")]  # one task only: no table
+    assert report.pick_task_table(two, ["walk_run"], ["rrama"]) == []
+
+
 def test_scores_figure_draws_each_seed_in_the_tables_order(tmp_path):
     """scores.png: per task, the methods in the tables' order (those with runs there), each with its seeds' numbers."""
     scores = {("walk", "dreamer"): [1.0, 2.0], ("walk", "rrama"): [4.0], ("run", "rrama"): [7.0, 9.0, 8.0]}
