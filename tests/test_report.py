@@ -196,7 +196,7 @@ def test_pick_task_table_by_hand_and_only_for_three_tasks(tmp_path):
     exp = tmp_path / "exp"
     for name, rows in [("walk_run__rrama__s1", [{"walker-stand": 0.8, "walker-walk": 0.2},
                                                 {"walker-stand": 0.4, "walker-walk": 0.4, "walker-run": 0.2}]),
-                       ("walk_run__rrama__s2", [{"walker-walk": 1.0}])]:
+                       ("walk_run__rrama__s2", [{"walker-stand": 0.5, "walker-walk": 0.5}])]:
         run = write_run(exp, name, [1.0], {"env_id": "dmc/walker-run", "method": "rrama", "seed": 1})
         with open(run / "metrics.jsonl", "a") as f:
             f.write("".join(json.dumps({"step": 100 * (i + 2), **{f"addressing/pick_fraction/{k}": v
@@ -205,10 +205,10 @@ def test_pick_task_table_by_hand_and_only_for_three_tasks(tmp_path):
     runs = report.load_experiment(str(exp), "charts/episodic_return")
     lines = report.pick_task_table(runs, ["walk_run"], ["rrama"])
     assert "| task | method | runs | walker-run | walker-stand | walker-walk |" in lines
-    # seed 1's means: run 0.2 (one round logged it), stand 0.6, walk 0.3; seed 2's 0, 0, 1 -> 0.10, 0.30, 0.65
+    # seed 1's means: run 0.2 (one round logged it), stand 0.6, walk 0.3; seed 2's 0, 0.5, 0.5 -> 0.10, 0.55, 0.40
     assert [line for line in lines if line.startswith("| walk_run")] == [
-        "| walk_run | RRAMa | 2 | 0.10 | 0.30 | 0.65 |"]
-    two = [r for r in runs if r["name"].endswith("s2")]  # one task only: no table
+        "| walk_run | RRAMa | 2 | 0.10 | 0.55 | 0.40 |"]
+    two = [r for r in runs if r["name"].endswith("s2")]  # two tasks (stand, walk): no table
     assert report.pick_task_table(two, ["walk_run"], ["rrama"]) == []
 
 
