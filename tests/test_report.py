@@ -609,3 +609,26 @@ def test_bad_command_line_input_is_one_line_and_exit_2(results):
         assert proc.returncode == 2, (flags, proc.stderr)
         assert proc.stderr.startswith(line) and len(proc.stderr.strip().splitlines()) == 1, (flags, proc.stderr)
         assert not (results / "report.md").exists() and proc.stdout == ""
+
+
+def test_posture_by_hand(tmp_path):
+    """tools/posture.py: per part, the mean return, torso height (state index 14), share of steps above 1.2 and forward
+    speed (index 16) over obs[1:] (obs[0] is the reset's); a folder without walker episodes is one line."""
+    from tools.posture import posture
+
+    for i, (height, speed) in enumerate([(1.0, 0.5), (1.4, 1.5), (2.0, -1.0)]):
+        obs = np.zeros((3, 24), np.float32)  # T = 2 steps after the reset
+        obs[0, 14], obs[1:, 14], obs[1:, 16] = 9.0, [height, 1.0], speed  # the reset's height is not counted
+        np.savez(tmp_path / f"{i:06d}-2.npz", obs=obs, reward=np.array([0.0, i, 1.0], np.float32))
+    files = sorted(str(p) for p in tmp_path.glob("*.npz"))
+    rows = posture(files, parts=2)  # [0, 1] and [2]
+    assert [(r["first"], r["last"]) for r in rows] == [(0, 1), (2, 2)]
+    assert rows[0]["return"] == pytest.approx((1.0 + 2.0) / 2) and rows[1]["return"] == pytest.approx(3.0)
+    assert rows[0]["height"] == pytest.approx((1.0 + 1.2) / 2) and rows[1]["height"] == pytest.approx(1.5)
+    assert rows[0]["above_1.2"] == pytest.approx(0.25) and rows[1]["above_1.2"] == pytest.approx(0.5)
+    assert rows[0]["speed"] == pytest.approx(1.0) and rows[1]["speed"] == pytest.approx(-1.0)
+    assert len(posture(files, parts=10)) == 1  # fewer files than parts: one part
+    out = run_script("tools/posture.py", str(tmp_path), "--parts", "3").stdout.splitlines()
+    assert out[1] == "episodes   1-  1: return    2.0, torso height 1.20 (above 1.2: 50%), forward speed 1.50 m/s"
+    bad = run_script("tools/posture.py", str(tmp_path / "none"), check=False)
+    assert bad.returncode != 0 and bad.stderr.strip() == f"error: {tmp_path / 'none'}: no episode files (*.npz) there"
