@@ -632,3 +632,5 @@ def test_posture_by_hand(tmp_path):
     assert out[1] == "episodes   1-  1: return    2.0, torso height 1.20 (above 1.2: 50%), forward speed 1.50 m/s"
     bad = run_script("tools/posture.py", str(tmp_path / "none"), check=False)
     assert bad.returncode != 0 and bad.stderr.strip() == f"error: {tmp_path / 'none'}: no episode files (*.npz) there"
+    bad = run_script("tools/posture.py", str(tmp_path), "--parts", "0", check=False)
+    assert bad.returncode != 0 and bad.stderr.strip() == "error: --parts must be >= 1 (got 0)"
