@@ -1,8 +1,8 @@
 """How a folder's walker episodes move: return, torso height and forward speed per tenth of the folder.
 
-Reads the episode files of a run folder (or a results/ copy of one) in name order, per task folder, which is the order they were
-collected, and prints one line per tenth: the mean return, the torso's mean height and the share of steps above 1.2
-(walker-stand rewards a torso above 1.2), and the mean forward speed. State vector only: dm_control's walker
+Reads the episode files of a run folder (or a results/ copy of one) in name order, per task folder, which is the order
+they were collected, and prints one line per tenth: the mean return, the torso's mean height and the share of steps
+above 1.2 (walker-stand rewards a torso above 1.2), and the mean forward speed. State vector only: dm_control's walker
 observation is 14 orientations, the torso height (index 14) and 9 velocities, the second of them forward (index 16).
 
     python tools/posture.py results/walker_tables/prior_stand_paper_kl__dreamer__s1
