@@ -490,6 +490,9 @@ def test_offline_score_by_hand():
     assert out["entropy"] == pytest.approx((np.log(3) + 1.5 * np.log(2)) / 2 / np.log(3))
     assert out["embedding_norm"] == pytest.approx(np.log(2) / 3)
     assert out["logit_sd"] == pytest.approx((0 + np.log(2) * np.sqrt(2) / 3) / 2)  # s.d. of (ln 2, 0, 0): ln 2·√2/3
+    assert out["saturated"] == 0.0  # no |f(M_j)| above 0.99
+    Fixed.candidate_embeddings = torch.tensor([[0.995], [-1.0], [0.5]])  # two of the three GRU states stuck at ±1
+    assert score(Fixed(), None, None, candidates, num_prior=1, seq_len=5, cap=10)["saturated"] == pytest.approx(2 / 3)
 
 
 def test_offline_variants_scale_the_logits_and_freeze_the_x_embedding():

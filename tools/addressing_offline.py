@@ -14,7 +14,7 @@ Every --eval-every updates it scores q̂(j | x) over the candidate chunks of M (
     prior mass q̂'s mass on prior-run chunks (M also holds the run's own episodes)
     entropy    q̂'s entropy as a fraction of a uniform q̂'s
     ‖f(M_j)‖   the candidates' embedding norm, and logit s.d. the spread of f(x)ᵀ f(M_j) over them: how sharp q̂
-               can be
+               can be; saturated units the share of f(M_j)'s GRU units at |h| > 0.99 (stuck: no gradient)
 and prints a Markdown table of the mean over seeds with the 95% t-interval; --out writes the numbers as JSON.
 
 Three knobs test why f_φ may not follow its objective; the defaults are the run's own f_φ (the paper's):
@@ -141,15 +141,18 @@ def score(addressing, multitask, x: dict, candidates, num_prior: int, seq_len: i
     episode_ids, stored, predicted = candidates
     addressing.refresh(multitask, seq_len, cap, np.random.default_rng(0))  # D for the same candidates each time
     assert np.array_equal(addressing.candidates[0], episode_ids)
-    logits = (addressing.embed_x(x).double() @ addressing.candidate_embeddings.double().T).cpu()  # (rows, N_c), as Addressing.probs
+    embeddings = addressing.candidate_embeddings.double()  # (N_c, U): D, times the logit scale
+    logits = (addressing.embed_x(x).double() @ embeddings.T).cpu()  # (rows, N_c), as Addressing.probs
     q = logits.softmax(-1).numpy()  # (rows, N_c)
     entropy = -(q * logits.log_softmax(-1).numpy()).sum(-1)  # (rows,)
     return {"predicted": float((q @ predicted).mean() - predicted.mean()),
             "stored": float((q @ stored).mean() - stored.mean()),
             "prior_mass": float((q @ (episode_ids < num_prior)).mean()),
             "entropy": float(entropy.mean() / np.log(q.shape[1])),
-            "embedding_norm": float(addressing.candidate_embeddings.double().norm(dim=-1).mean() / addressing.logit_scale),  # ‖f(M_j)‖
-            "logit_sd": float(logits.numpy().std(-1).mean())}  # the spread of f(x_i)ᵀ D_j over the candidates
+            "embedding_norm": float(embeddings.norm(dim=-1).mean() / addressing.logit_scale),  # ‖f(M_j)‖
+            "logit_sd": float(logits.numpy().std(-1).mean()),  # the spread of f(x_i)ᵀ D_j over the candidates
+            # f_φ ends in a GRU's state: units stuck at ±1 embed every chunk alike and pass back no gradient
+            "saturated": float((embeddings.abs() / addressing.logit_scale > 0.99).double().mean())}
 
 
 def mean_ci(values) -> str:
@@ -224,16 +227,16 @@ def main(cli: Args):
     print(f"\nq̂ against a uniform pick, mean over {len(cli.seeds)} seeds [95% t-interval]; over the "
           f"{facts['candidates']} candidates the world model's predicted and the stored chunk rewards correlate at "
           f"{facts['reward_corr']:.2f}, and {facts['prior_share']:.2f} of them come from prior runs\n")
-    print("| start | update | predicted-reward gain | stored-reward gain | prior mass | entropy / uniform | ‖f(M_j)‖ "
-          "| logit s.d. |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("| start | update | predicted-reward gain | stored-reward gain | prior mass | entropy / uniform "
+          "| ‖f(M_j)‖ | logit s.d. | saturated units |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for start in cli.starts:
         for update in sorted({r["update"] for r in rows}):
             sel = [r for r in rows if r["start"] == start and r["update"] == update]
             print(f"| {start} | {update} | {mean_ci([r['predicted'] for r in sel])} | "
                   f"{mean_ci([r['stored'] for r in sel])} | {np.mean([r['prior_mass'] for r in sel]):.2f} | "
                   f"{np.mean([r['entropy'] for r in sel]):.2f} | {np.mean([r['embedding_norm'] for r in sel]):.1f} | "
-                  f"{np.mean([r['logit_sd'] for r in sel]):.1f} |")
+                  f"{np.mean([r['logit_sd'] for r in sel]):.1f} | {np.mean([r['saturated'] for r in sel]):.2f} |")
     if cli.out:
         os.makedirs(os.path.dirname(os.path.abspath(cli.out)), exist_ok=True)
         with open(cli.out, "w") as f:
