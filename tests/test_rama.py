@@ -490,9 +490,25 @@ def test_offline_score_by_hand():
     assert out["entropy"] == pytest.approx((np.log(3) + 1.5 * np.log(2)) / 2 / np.log(3))
     assert out["embedding_norm"] == pytest.approx(np.log(2) / 3)
     assert out["logit_sd"] == pytest.approx((0 + np.log(2) * np.sqrt(2) / 3) / 2)  # s.d. of (ln 2, 0, 0): ln 2·√2/3
-    assert out["saturated"] == 0.0  # no |f(M_j)| above 0.99
-    Fixed.candidate_embeddings = torch.tensor([[0.995], [-1.0], [0.5]])  # two of the three GRU states stuck at ±1
-    assert score(Fixed(), None, None, candidates, num_prior=1, seq_len=5, cap=10)["saturated"] == pytest.approx(2 / 3)
+
+
+def test_offline_pinned_gates():
+    from tools.addressing_offline import pinned_gates
+
+    torch.manual_seed(0)
+    net = rd.AddressNet((3,), 2, units=4, cnn_depth=8)
+    batch = {"obs": torch.randn(5, 6, 3), "action": torch.randn(5, 6, 2), "reward": torch.zeros(5, 6)}
+    assert pinned_gates(net, batch) == 0.0  # at initialisation no gate is anywhere near 0 or 1
+    with torch.no_grad():
+        net.gru.bias_ih_l0[4:6] = 100.0  # the update gates of units 0 and 1: sigmoid(~100) is 1.0 in float32
+        net.gru.bias_ih_l0[6:8] = -100.0  # units 2 and 3: 0.0
+    assert pinned_gates(net, batch) == 1.0
+    with torch.no_grad():
+        net.gru.bias_ih_l0[4] = 0.0  # unit 0 free again: 3 of the 4 gates pinned at every step
+    assert pinned_gates(net, batch) == 0.75
+    # with z = 1 units 1 keeps its zero start to the end (the step is nn.GRU's own), and z = 0 takes the candidate
+    out = net.gru(net.inp(torch.cat([net.encoder(batch["obs"]), batch["action"]], -1)))[0][:, -1]  # (5, 4)
+    assert torch.equal(out[:, 1], torch.zeros(5)) and (out[:, 2:].abs() > 0).all()
 
 
 def test_offline_variants_scale_the_logits_and_freeze_the_x_embedding():
@@ -558,7 +574,8 @@ def test_offline_tool_on_a_tiny_rrama_run(tmp_path, prior_run):
     fresh_start = [r for r in rows if r["start"] == "fresh" and r["update"] == 0]
     assert run_start[0]["predicted"] == run_start[1]["predicted"]  # the run's own f_φ, before any update
     assert fresh_start[0]["predicted"] != fresh_start[1]["predicted"]  # two freshly drawn f_φ
-    assert all(0 <= r["prior_mass"] <= 1 and 0 < r["entropy"] <= 1 + 1e-9 for r in rows)
+    assert all(0 <= r["prior_mass"] <= 1 and 0 < r["entropy"] <= 1 + 1e-9 and 0 <= r["pinned"] <= 1 for r in rows)
+    assert all(np.isnan(r["zero_grad"]) == (r["update"] == 0) for r in rows)  # nan before any update
     # a run without f_φ is one line naming it
     run("--env-id", "dmc/walker-walk", "--method", "uniform", "--prior-dirs", prior_run, "--run-dir",
         str(tmp_path / "u"), *TINY, "--prior-min-return", "0")

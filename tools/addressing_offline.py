@@ -14,7 +14,10 @@ Every --eval-every updates it scores q̂(j | x) over the candidate chunks of M (
     prior mass q̂'s mass on prior-run chunks (M also holds the run's own episodes)
     entropy    q̂'s entropy as a fraction of a uniform q̂'s
     ‖f(M_j)‖   the candidates' embedding norm, and logit s.d. the spread of f(x)ᵀ f(M_j) over them: how sharp q̂
-               can be; saturated units the share of f(M_j)'s GRU units at |h| > 0.99 (stuck: no gradient)
+               can be
+    pinned     the share of f_φ's GRU update gates that are exactly 0 or 1 in float32 over a fixed sample of M's
+               chunks (a pinned gate passes back no gradient), and zero-grad the share of the updates since the
+               last scoring whose gradient was exactly 0: has f_φ stopped learning?
 and prints a Markdown table of the mean over seeds with the 95% t-interval; --out writes the numbers as JSON.
 
 Three knobs test why f_φ may not follow its objective; the defaults are the run's own f_φ (the paper's):
@@ -150,9 +153,29 @@ def score(addressing, multitask, x: dict, candidates, num_prior: int, seq_len: i
             "prior_mass": float((q @ (episode_ids < num_prior)).mean()),
             "entropy": float(entropy.mean() / np.log(q.shape[1])),
             "embedding_norm": float(embeddings.norm(dim=-1).mean() / addressing.logit_scale),  # ‖f(M_j)‖
-            "logit_sd": float(logits.numpy().std(-1).mean()),  # the spread of f(x_i)ᵀ D_j over the candidates
-            # f_φ ends in a GRU's state: units stuck at ±1 embed every chunk alike and pass back no gradient
-            "saturated": float((embeddings.abs() / addressing.logit_scale > 0.99).double().mean())}
+            "logit_sd": float(logits.numpy().std(-1).mean())}  # the spread of f(x_i)ᵀ D_j over the candidates
+
+
+@torch.no_grad()
+def pinned_gates(net: rd.AddressNet, batch: dict) -> float:
+    """The share of f_φ's GRU update gates z that are exactly 0 or 1 in float32 over a batch of chunks. The GRU
+    steps h_t = (1 − z)·n_t + z·h_(t−1) as torch's nn.GRU does (gates in the order reset, update, candidate); where z
+    is pinned, no gradient passes, and a unit with z = 1 keeps its state to the chunk's end."""
+    parts = [net.encoder(batch["obs"]), batch["action"]]
+    parts += [batch["reward"][..., None]] if net.reward_input else []
+    inputs = net.inp(torch.cat(parts, -1))  # (B, T, U), as AddressNet.forward feeds the GRU
+    gru, units = net.gru, net.gru.hidden_size
+    state = inputs.new_zeros(len(inputs), units)  # (B, U)
+    pinned = []
+    for t in range(inputs.shape[1]):
+        from_input = inputs[:, t] @ gru.weight_ih_l0.T + gru.bias_ih_l0  # (B, 3U)
+        from_state = state @ gru.weight_hh_l0.T + gru.bias_hh_l0  # (B, 3U)
+        reset = torch.sigmoid(from_input[:, :units] + from_state[:, :units])
+        update = torch.sigmoid(from_input[:, units:2 * units] + from_state[:, units:2 * units])
+        candidate = torch.tanh(from_input[:, 2 * units:] + reset * from_state[:, 2 * units:])
+        state = (1 - update) * candidate + update * state
+        pinned.append(((update == 0) | (update == 1)).float().mean())
+    return float(torch.stack(pinned).mean())
 
 
 def mean_ci(values) -> str:
@@ -189,6 +212,7 @@ def main(cli: Args):
     load_weights(agent, checkpoint["agent"], os.path.join(task_path, "checkpoint.pt"))
     candidates = candidate_rewards(agent, multitask, run_args.seq_len, run_args.address_candidates, device)
     x_eval = rd.to_torch(own.sample(cli.eval_rows, run_args.seq_len, np.random.default_rng(12345)), device)
+    m_eval = rd.to_torch(multitask.sample(cli.eval_rows, run_args.seq_len, np.random.default_rng(54321)), device)
     print(f"{cli.run}: {run_args.method}, M = {num_prior} prior + {len(multitask) - num_prior} own episodes, "
           f"{cli.updates} updates x {len(cli.seeds)} seeds per start, {device}; logit scale {cli.logit_scale:g}, "
           f"x embedded by {'a frozen copy of f_φ' if cli.x_embedding == 'frozen' else 'f_φ'}, "
@@ -208,16 +232,19 @@ def main(cli: Args):
                 addressing.opt.load_state_dict(saved_address["opt"])
             for group in addressing.opt.param_groups:
                 group["lr"] = lr
-            t0 = time.perf_counter()
+            t0, grad_norms = time.perf_counter(), []  # grad_norms: those of the updates since the last scoring
             for update in range(cli.updates + 1):
                 if update % cli.eval_every == 0 or update == cli.updates:
                     rows.append({"start": start, "seed": seed, "update": update,
                                  **score(addressing, multitask, x_eval, candidates, num_prior, run_args.seq_len,
-                                         run_args.address_candidates)})
+                                         run_args.address_candidates),
+                                 "pinned": pinned_gates(addressing.net, m_eval),
+                                 "zero_grad": float(np.mean(np.equal(grad_norms, 0))) if grad_norms else float("nan")})
+                    grad_norms = []
                 if update < cli.updates:  # x ~ M_τ, M_j ~ M, one step of φ with the agent fixed
                     x = rd.to_torch(own.sample(run_args.batch_size, run_args.seq_len, rng), device)
                     m_batch = rd.to_torch(multitask.sample(run_args.address_batch, run_args.seq_len, rng), device)
-                    addressing.train(agent, x, m_batch, run_args)
+                    grad_norms.append(float(addressing.train(agent, x, m_batch, run_args)["addressing/grad_norm"]))
             print(f"  {start} seed {seed}: {cli.updates} updates in {time.perf_counter() - t0:.0f} s, predicted-reward "
                   f"gain {rows[-1]['predicted']:+.1f}", flush=True)
 
@@ -228,15 +255,17 @@ def main(cli: Args):
           f"{facts['candidates']} candidates the world model's predicted and the stored chunk rewards correlate at "
           f"{facts['reward_corr']:.2f}, and {facts['prior_share']:.2f} of them come from prior runs\n")
     print("| start | update | predicted-reward gain | stored-reward gain | prior mass | entropy / uniform "
-          "| ‖f(M_j)‖ | logit s.d. | saturated units |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "| ‖f(M_j)‖ | logit s.d. | pinned gates | zero-grad updates |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for start in cli.starts:
         for update in sorted({r["update"] for r in rows}):
             sel = [r for r in rows if r["start"] == start and r["update"] == update]
+            zero_grad = [r["zero_grad"] for r in sel]  # nan at update 0: no updates yet
             print(f"| {start} | {update} | {mean_ci([r['predicted'] for r in sel])} | "
                   f"{mean_ci([r['stored'] for r in sel])} | {np.mean([r['prior_mass'] for r in sel]):.2f} | "
                   f"{np.mean([r['entropy'] for r in sel]):.2f} | {np.mean([r['embedding_norm'] for r in sel]):.1f} | "
-                  f"{np.mean([r['logit_sd'] for r in sel]):.1f} | {np.mean([r['saturated'] for r in sel]):.2f} |")
+                  f"{np.mean([r['logit_sd'] for r in sel]):.1f} | {np.mean([r['pinned'] for r in sel]):.2f} | "
+                  f"{'–' if np.isnan(zero_grad).all() else f'{np.mean(zero_grad):.2f}'} |")
     if cli.out:
         os.makedirs(os.path.dirname(os.path.abspath(cli.out)), exist_ok=True)
         with open(cli.out, "w") as f:
