@@ -136,10 +136,27 @@ def test_vrama_gradient_reaches_phi_only():
     agent_before = {k: v.clone() for k, v in agent.state_dict().items()}
     phi_before = {k: v.clone() for k, v in addressing.net.state_dict().items()}
     metrics = addressing.train(agent, x, m, args)
-    assert metrics["addressing/grad_norm"] > 0
+    assert metrics["addressing/grad_norm"] > 0 and metrics["addressing/zero_grad"] == 0
     assert all(torch.equal(v, agent_before[k]) for k, v in agent.state_dict().items())
     assert any(not torch.equal(v, phi_before[k]) for k, v in addressing.net.state_dict().items())
     assert all(p.grad is None for p in agent.parameters())
+
+
+def test_pinned_gru_gates_pass_no_gradient_to_phi():
+    # f_φ's GRU with every update gate at exactly 1 (sigmoid(100) in float32) keeps its zero start: every embedding
+    # and logit is 0 whatever φ, so the step's gradient is exactly 0 and the round's zero_grad share counts it
+    args = rd.Args(obs_type="state", method="rrama", **SMALL)
+    agent = rd.Agent((3,), 2, args)
+    addressing = rd.Addressing((3,), 2, args, "cpu")
+    rng = np.random.default_rng(0)
+    replay = synthetic_replay((3,), 2, 2, 20, rng)
+    x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
+    units = addressing.net.gru.hidden_size
+    with torch.no_grad():
+        addressing.net.gru.bias_ih_l0[units:2 * units] = 100.0
+    metrics = addressing.train(agent, x, m, args)
+    assert metrics["addressing/grad_norm"] == 0 and metrics["addressing/zero_grad"] == 1
+    assert metrics["addressing/entropy"].item() == pytest.approx(np.log(6))  # q uniform over the m = 6 chunks
 
 
 def test_vrama_start_subset_is_the_full_loss_when_it_covers_every_start():
