@@ -315,6 +315,7 @@ def write_report(folder: str, out: str, key: str, reps: int, seed: int, bins: in
     lines += diagnostics_table(runs, tasks, methods, decimals)
     lines += pick_task_table(runs, tasks, methods)
     lines += pick_source_table(runs, tasks, methods)
+    lines += stalled_table(runs, tasks, methods)
     lines += reference_table(runs, tasks, methods, reference, decimals) if reference else []
     lines += levels_table(runs, tasks, methods, key, levels, decimals) if levels else []
     figure = "curves.png"
@@ -488,6 +489,41 @@ def diagnostics_table(runs: list, tasks: list, methods: list, decimals: int) -> 
                          f"{mean(diags, 'picked_return', decimals)} / {mean(diags, 'candidate_return', decimals)} | "
                          f"{mean(diags, 'picked_chunk', decimals)} / {mean(diags, 'candidate_chunk', decimals)} | "
                          f"{mean(diags, 'entropy', 2)} | {mean(diags, 'bandit_gain', decimals)} |")
+    return lines
+
+
+def stalled_rounds(metrics_path: str) -> tuple:
+    """(the share of a run's rounds whose mean gradient norm of f_φ was below 1% of its first round's, the env step of
+    the first such round or None); (nan, None) for a run without f_φ. Below 1%, f_φ has all but stopped learning:
+    its GRU's update gates sit at exactly 0 or 1 (tools/addressing_offline.py's pinned gates)."""
+    steps, norms = read_series(metrics_path, "addressing/grad_norm")
+    if len(norms) == 0:
+        return float("nan"), None
+    stalled = norms < 0.01 * norms[0]
+    return float(stalled.mean()), int(steps[stalled][0]) if stalled.any() else None
+
+
+def stalled_table(runs: list, tasks: list, methods: list) -> list:
+    """Markdown lines: per task and addressed method, the mean over seeds of stalled_rounds' share, and each seed's
+    first stalled round; none when no run logged f_φ's gradient."""
+    cells = {}  # (task, method) -> [(share, first step) of each seed]
+    for r in runs:
+        share, first = stalled_rounds(r["metrics_path"]) if r["method"] != "dreamer" else (float("nan"), None)
+        if not np.isnan(share):
+            cells.setdefault((r["task"], r["method"]), []).append((share, first))
+    if not cells:
+        return []
+    lines = ["", "Did f_φ keep learning? *Stalled rounds*: the share of a run's rounds of updates whose mean gradient "
+             "norm of f_φ was below 1% of its first round's (the mean over seeds); *first stalled*: the env step of "
+             "each seed's first such round (– if none).", "",
+             "| task | method | runs | stalled rounds | first stalled (each seed) |", "|" + " --- |" * 5]
+    for task in tasks:
+        for method in methods:
+            diags = cells.get((task, method))
+            if diags:
+                firsts = "; ".join("–" if first is None else f"{first:,}" for _, first in diags)
+                lines.append(f"| {task} | {method_name(method)} | {len(diags)} | "
+                             f"{fmt(float(np.mean([share for share, _ in diags])), 2)} | {firsts} |")
     return lines
 
 

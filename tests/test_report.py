@@ -170,6 +170,28 @@ def test_diagnostics_table_by_hand(tmp_path):
                     "| walk | RRAMa | 2 | 0.60 | 0.25 | 10.0 / 6.0 | 3.0 / 2.0 | 0.81 | 1.5 |"]
 
 
+def test_stalled_table_by_hand(tmp_path):
+    exp = tmp_path / "exp"
+
+    def rounds(name, norms):
+        run = write_run(exp, name, [1.0], {"env_id": "dmc/walker-walk", "method": name.split("__")[1], "seed": 1})
+        with open(run / "metrics.jsonl", "a") as f:
+            f.write("".join(json.dumps({"step": 1000 * (i + 1), "addressing/grad_norm": v}) + "\n"
+                            for i, v in enumerate(norms)))
+
+    # seed 1: first round 10, so a round stalls below 0.1: 0.05 and 0.0 do (2 of 5, first at 3,000); 0.1 does not
+    rounds("walk__rrama__s1", [10.0, 2.0, 0.05, 0.1, 0.0])
+    rounds("walk__rrama__s2", [1.0, 0.5, 0.02])  # below 0.01? no: none of 3 stalls
+    rounds("walk__vrama__s1", [4.0, 0.01])  # 0.01 < 0.04: 1 of 2, at 2,000
+    write_run(exp, "walk__uniform__s1", [1.0])  # no f_φ: no row
+    runs = report.load_experiment(str(exp), "charts/episodic_return")
+    assert report.stalled_rounds(runs[0]["metrics_path"]) == (0.4, 3000)
+    lines = report.stalled_table(runs, ["walk"], report.method_order({r["method"] for r in runs}))
+    rows = [line for line in lines if line.startswith("| walk")]
+    assert rows == ["| walk | RRAMa | 2 | 0.20 | 3,000; – |", "| walk | VRAMa | 1 | 0.50 | 2,000 |"]  # (0.4 + 0) / 2
+    assert report.stalled_table([r for r in runs if r["method"] == "uniform"], ["walk"], ["uniform"]) == []
+
+
 def test_pick_source_table_by_hand(tmp_path):
     exp = tmp_path / "exp"
     for name, rows in [("box__rrama__s1", [{"expert": 0.2, "random": 0.8}, {"expert": 0.6, "random": 0.4}]),
