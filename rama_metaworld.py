@@ -1410,10 +1410,9 @@ class Addressing:
         grad_norm = optimizer_step(self.opt, loss, self.net.parameters(), args.address_grad_clip)
         log_q = logits.detach().log_softmax(-1)
         entropy = -(log_q.exp() * log_q).sum(-1).mean()
-        # zero_grad: 1 where no gradient reached φ at all (f_φ's GRU gates pinned at 0 or 1), a share per round
         return {"addressing/loss": loss.detach(), "addressing/entropy": entropy,
                 "addressing/entropy_uniform": torch.full_like(entropy, np.log(logits.shape[-1])),
-                "addressing/grad_norm": grad_norm, "addressing/zero_grad": (grad_norm == 0).float(), **metrics}
+                "addressing/grad_norm": grad_norm, **metrics}
 
     def refresh_if_due(self, args: Args, multitask: Replay, rng, updates_done: int, task_name: str):
         """Algorithm 2's "if c = 1": D recomputed at a task's first update and then every --address-refresh updates,

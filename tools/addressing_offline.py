@@ -16,8 +16,8 @@ Every --eval-every updates it scores q̂(j | x) over the candidate chunks of M (
     ‖f(M_j)‖   the candidates' embedding norm, and logit s.d. the spread of f(x)ᵀ f(M_j) over them: how sharp q̂
                can be
     pinned     the share of f_φ's GRU update gates that are exactly 0 or 1 in float32 over a fixed sample of M's
-               chunks (a pinned gate passes back no gradient), and zero-grad the share of the updates since the
-               last scoring whose gradient was exactly 0: has f_φ stopped learning?
+               chunks (a pinned gate passes back no gradient), and grad norm the median gradient norm of f_φ over
+               the updates since the last scoring: has f_φ stopped learning?
 and prints a Markdown table of the mean over seeds with the 95% t-interval; --out writes the numbers as JSON.
 
 Three knobs test why f_φ may not follow its objective; the defaults are the run's own f_φ (the paper's):
@@ -239,7 +239,7 @@ def main(cli: Args):
                                  **score(addressing, multitask, x_eval, candidates, num_prior, run_args.seq_len,
                                          run_args.address_candidates),
                                  "pinned": pinned_gates(addressing.net, m_eval),
-                                 "zero_grad": float(np.mean(np.equal(grad_norms, 0))) if grad_norms else float("nan")})
+                                 "grad_norm": float(np.median(grad_norms)) if grad_norms else float("nan")})
                     grad_norms = []
                 if update < cli.updates:  # x ~ M_τ, M_j ~ M, one step of φ with the agent fixed
                     x = rd.to_torch(own.sample(run_args.batch_size, run_args.seq_len, rng), device)
@@ -255,17 +255,17 @@ def main(cli: Args):
           f"{facts['candidates']} candidates the world model's predicted and the stored chunk rewards correlate at "
           f"{facts['reward_corr']:.2f}, and {facts['prior_share']:.2f} of them come from prior runs\n")
     print("| start | update | predicted-reward gain | stored-reward gain | prior mass | entropy / uniform "
-          "| ‖f(M_j)‖ | logit s.d. | pinned gates | zero-grad updates |")
+          "| ‖f(M_j)‖ | logit s.d. | pinned gates | grad norm |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for start in cli.starts:
         for update in sorted({r["update"] for r in rows}):
             sel = [r for r in rows if r["start"] == start and r["update"] == update]
-            zero_grad = [r["zero_grad"] for r in sel]  # nan at update 0: no updates yet
+            grad_norm = [r["grad_norm"] for r in sel]  # nan at update 0: no updates yet
             print(f"| {start} | {update} | {mean_ci([r['predicted'] for r in sel])} | "
                   f"{mean_ci([r['stored'] for r in sel])} | {np.mean([r['prior_mass'] for r in sel]):.2f} | "
                   f"{np.mean([r['entropy'] for r in sel]):.2f} | {np.mean([r['embedding_norm'] for r in sel]):.1f} | "
                   f"{np.mean([r['logit_sd'] for r in sel]):.1f} | {np.mean([r['pinned'] for r in sel]):.2f} | "
-                  f"{'–' if np.isnan(zero_grad).all() else f'{np.mean(zero_grad):.2f}'} |")
+                  f"{'–' if np.isnan(grad_norm).all() else f'{np.mean(grad_norm):.3g}'} |")
     if cli.out:
         os.makedirs(os.path.dirname(os.path.abspath(cli.out)), exist_ok=True)
         with open(cli.out, "w") as f:
