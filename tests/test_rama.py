@@ -126,13 +126,19 @@ def test_frozen_x_net_keeps_f_of_x_still_while_phi_learns():
         assert torch.equal(addressing.embed_x(x), x_before) == (x_net == "frozen")
 
 
-def test_vrama_gradient_reaches_phi_only():
-    args = rd.Args(obs_type="state", method="vrama", **SMALL)
+def small_addressing(method: str):
+    """Args, an agent and an Addressing at SMALL sizes over a 3-d state, with n = 4 chunks x and m = 6 chunks M_j."""
+    args = rd.Args(obs_type="state", method=method, **SMALL)
     agent = rd.Agent((3,), 2, args)
     addressing = rd.Addressing((3,), 2, args, "cpu")
     rng = np.random.default_rng(0)
     replay = synthetic_replay((3,), 2, 2, 20, rng)
     x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
+    return args, agent, addressing, x, m
+
+
+def test_vrama_gradient_reaches_phi_only():
+    args, agent, addressing, x, m = small_addressing("vrama")
     agent_before = {k: v.clone() for k, v in agent.state_dict().items()}
     phi_before = {k: v.clone() for k, v in addressing.net.state_dict().items()}
     metrics = addressing.train(agent, x, m, args)
@@ -145,12 +151,7 @@ def test_vrama_gradient_reaches_phi_only():
 def test_pinned_gru_gates_pass_no_gradient_to_phi():
     # f_φ's GRU with every update gate at exactly 1 (sigmoid(100) in float32) keeps its zero start: every embedding
     # and logit is 0 whatever φ, so the step's gradient is exactly 0
-    args = rd.Args(obs_type="state", method="rrama", **SMALL)
-    agent = rd.Agent((3,), 2, args)
-    addressing = rd.Addressing((3,), 2, args, "cpu")
-    rng = np.random.default_rng(0)
-    replay = synthetic_replay((3,), 2, 2, 20, rng)
-    x, m = rd.to_torch(replay.sample(4, 5, rng), "cpu"), rd.to_torch(replay.sample(6, 5, rng), "cpu")
+    args, agent, addressing, x, m = small_addressing("rrama")
     units = addressing.net.gru.hidden_size
     with torch.no_grad():
         addressing.net.gru.bias_ih_l0[units:2 * units] = 100.0
