@@ -508,7 +508,7 @@ def stalled_table(runs: list, tasks: list, methods: list) -> list:
     first stalled round; none when no run logged f_φ's gradient."""
     cells = {}  # (task, method) -> [(share, first step) of each seed]
     for r in runs:
-        share, first = stalled_rounds(r["metrics_path"]) if r["method"] != "dreamer" else (float("nan"), None)
+        share, first = stalled_rounds(r["metrics_path"])  # nan for a run without f_φ (Dreamer, uniform)
         if not np.isnan(share):
             cells.setdefault((r["task"], r["method"]), []).append((share, first))
     if not cells:

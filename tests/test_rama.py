@@ -525,7 +525,7 @@ def test_offline_pinned_gates():
         net.gru.bias_ih_l0[4] = 0.0  # unit 0 free again: 3 of the 4 gates pinned at every step
     assert pinned_gates(net, batch) == 0.75
     # with z = 1 units 1 keeps its zero start to the end (the step is nn.GRU's own), and z = 0 takes the candidate
-    out = net.gru(net.inp(torch.cat([net.encoder(batch["obs"]), batch["action"]], -1)))[0][:, -1]  # (5, 4)
+    out = net(batch["obs"], batch["action"])  # (5, 4): the GRU's last state
     assert torch.equal(out[:, 1], torch.zeros(5)) and (out[:, 2:].abs() > 0).all()
 
 

@@ -161,10 +161,11 @@ def pinned_gates(net: rd.AddressNet, batch: dict) -> float:
     """The share of f_φ's GRU update gates z that are exactly 0 or 1 in float32 over a batch of chunks. The GRU
     steps h_t = (1 − z)·n_t + z·h_(t−1) as torch's nn.GRU does (gates in the order reset, update, candidate); where z
     is pinned, no gradient passes, and a unit with z = 1 keeps its state to the chunk's end."""
-    parts = [net.encoder(batch["obs"]), batch["action"]]
-    parts += [batch["reward"][..., None]] if net.reward_input else []
-    inputs = net.inp(torch.cat(parts, -1))  # (B, T, U), as AddressNet.forward feeds the GRU
-    gru, units = net.gru, net.gru.hidden_size
+    fed = []  # what AddressNet.forward feeds its GRU, caught on the way in
+    hook = net.gru.register_forward_hook(lambda module, args, output: fed.append(args[0]))
+    net(batch["obs"], batch["action"], batch["reward"])
+    hook.remove()
+    inputs, gru, units = fed[0], net.gru, net.gru.hidden_size  # inputs: (B, T, U)
     state = inputs.new_zeros(len(inputs), units)  # (B, U)
     pinned = []
     for t in range(inputs.shape[1]):
