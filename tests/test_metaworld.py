@@ -206,6 +206,9 @@ def test_every_method_runs_on_new_vectors(tmp_path, expert_prior, method):
     new = task_vectors("push", "new", 1)
     with np.load(sorted(glob.glob(os.path.join(run_path, "episodes", "*.npz")))[0]) as ep:
         assert any(np.allclose(ep["task_vector"], v) for v in new)
+    if method == "rrama":  # the offline check of f_φ reads a Meta-World run through rama_metaworld's own args
+        proc = run_script("tools/addressing_offline.py", run_path, "--updates", "1", "--seeds", "0", "--eval-rows", "2")
+        assert "| run | 1 |" in proc.stdout and "rrama, M = 2 prior" in proc.stdout
 
 
 @pytest.mark.slow

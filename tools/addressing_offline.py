@@ -30,7 +30,8 @@ Three knobs test why f_φ may not follow its objective; the defaults are the run
 
 M is rebuilt as the run built it at its end: the prior episodes (--prior-dirs, --prior-min-return, K drawn with the
 run's seed) plus every episode the run collected; x comes from the (last) task's own episodes. Nothing in the run
-folder is written. CPU by default; a cartpole state run at batch 16 takes about 0.3 s per update on one core.
+folder is written. Runs of rama_dreamer.py and of rama_metaworld.py. CPU by default; a cartpole state run at batch
+16 takes about 0.3 s per update on one core.
 
 Run (from the repository root):
     python tools/addressing_offline.py runs/cartpole_tables/balance__rrama__s1/<run> --out results/x.json
@@ -190,10 +191,26 @@ def mean_ci(values) -> str:
     return f"{values.mean():+.1f} [{values.mean() - half:+.1f}, {values.mean() + half:+.1f}]"
 
 
+def saved_by(run: str):
+    """The training script that wrote the run: rama_metaworld for a Meta-World env id, else rama_dreamer. Only the
+    run's args differ between them; what this tool uses past them is their shared text."""
+    try:
+        with open(os.path.join(run, "args.json")) as f:
+            env_id = str(json.load(f).get("env_id", ""))
+    except (OSError, ValueError, AttributeError):
+        return rd  # resolve_run names what is wrong with the folder
+    if not env_id.startswith("metaworld/"):
+        return rd
+    import rama_metaworld  # imported only here: it loads Meta-World
+
+    return rama_metaworld
+
+
 def main(cli: Args):
+    script = saved_by(cli.run)
     try:  # the run's saved args, checked as --resume checks them
-        run_args, run_path = rd.resolve_run(rd.Args(resume=cli.run), set())
-    except rd.UsageError as e:  # its messages name --resume, which this tool does not have
+        run_args, run_path = script.resolve_run(script.Args(resume=cli.run), set())
+    except script.UsageError as e:  # its messages name --resume, which this tool does not have
         raise rd.UsageError(str(e).replace("--resume ", "", 1)) from None
     if run_args.method not in rd.ADDRESSED_METHODS:
         raise rd.UsageError(f"{cli.run}: a {run_args.method} run has no f_φ (needs vrama, rrama or rbrama)")
