@@ -53,6 +53,7 @@ import torch  # noqa: E402
 import tyro  # noqa: E402
 
 import rama_dreamer as rd  # noqa: E402
+import rama_metaworld  # noqa: E402  (Meta-World itself is imported only when an env is made)
 
 
 @dataclass
@@ -192,18 +193,13 @@ def mean_ci(values) -> str:
 
 
 def saved_by(run: str):
-    """The training script that wrote the run: rama_metaworld for a Meta-World env id, else rama_dreamer. Only the
-    run's args differ between them; what this tool uses past them is their shared text."""
+    """The training script that wrote the run, by its env id as tools/eval_actions.py tells it. Only the run's args
+    differ between the two; what this tool uses past them is their shared text."""
     try:
         with open(os.path.join(run, "args.json")) as f:
-            env_id = str(json.load(f).get("env_id", ""))
-    except (OSError, ValueError, AttributeError):
+            return rama_metaworld if json.load(f)["env_id"].startswith("metaworld/") else rd
+    except (OSError, ValueError, LookupError, TypeError, AttributeError):
         return rd  # resolve_run names what is wrong with the folder
-    if not env_id.startswith("metaworld/"):
-        return rd
-    import rama_metaworld  # imported only here: it loads Meta-World
-
-    return rama_metaworld
 
 
 def main(cli: Args):
