@@ -30,9 +30,11 @@ FAMILIES = [("kitchen_bluebox", rama_dreamer, "kitchen/bluebox", {"kitchen_start
 # sweeps/metaworld_table2.toml's cells (named by task) at rama_metaworld.py's default schedule (action repeat 1)
 TABLE2 = [(name.replace("-", "_"), rama_metaworld, f"metaworld/{name}", {"task_set": "new"})
           for name in ("push", "dial-turn", "drawer-close")]
-# sweeps/kitchen_tables.toml's cells: Box and Box -> Cone (whose runs act on the cone), the paper's fixed start
+# sweeps/kitchen_tables.toml's cells: Box and Box -> Cone (whose runs act on the cone; box_cone_wm is its ablation,
+# the same env), the paper's fixed start
 KITCHEN = [("box", rama_dreamer, "kitchen/bluebox", {"kitchen_start": "fixed"}),
-           ("box_cone", rama_dreamer, "kitchen/bluecone", {"kitchen_start": "fixed"})]
+           ("box_cone", rama_dreamer, "kitchen/bluecone", {"kitchen_start": "fixed"}),
+           ("box_cone_wm", rama_dreamer, "kitchen/bluecone", {"kitchen_start": "fixed"})]
 
 
 def expert(S, env):
