@@ -75,7 +75,15 @@ def main():
     folder, cells = (("metaworld_table2", TABLE2) if cli.table2 else ("kitchen_tables", KITCHEN) if cli.kitchen
                      else ("families_state", FAMILIES))
     cli.out = cli.out or os.path.join(ROOT, "results", folder, "references.json")
-    table = {cell: {policy: score(S, env_id, flags, policy, cli.episodes) for policy in ("random", "expert")}
+    scored = {}  # cells on one env with one set of flags (box_cone and its ablation box_cone_wm) are scored once
+
+    def score_once(S, env_id: str, flags: dict, policy: str) -> dict:
+        key = (S.__name__, env_id, tuple(sorted(flags.items())), policy)
+        if key not in scored:
+            scored[key] = score(S, env_id, flags, policy, cli.episodes)
+        return scored[key]
+
+    table = {cell: {policy: score_once(S, env_id, flags, policy) for policy in ("random", "expert")}
              for cell, S, env_id, flags in cells}
     os.makedirs(os.path.dirname(cli.out), exist_ok=True)
     with open(cli.out, "w") as f:
